@@ -1,0 +1,62 @@
+"""The interface every task implements, and its input checks."""
+
+from __future__ import annotations
+
+import abc
+
+import torch
+from torch import Tensor
+
+
+class EpisodicTask(abc.ABC):
+    """An episodic reinforcement-learning task seen as a black-box reward of policy parameters.
+
+    Subclasses set, in ``__init__``:
+
+    * ``theta0: [D]`` -- the initial policy parameters (the paper's θ in Algorithm 2),
+    * ``sigma_start: [D, D]`` -- the initial exploration covariance Σ_start,
+    * ``reward_range: (low, high)`` -- bounds of the return; the optimizers map returns to
+      positive weights with it (see :class:`dipole_torch.RewardScale`),
+    * ``device`` and ``dtype`` of the rollouts,
+
+    and implement :meth:`evaluate`, a rollout batched over policies (a loop over time steps
+    only). The optimizer never calls the task: ``train.py`` passes ``ask()``'s parameters
+    to ``evaluate`` and the returns back to ``tell``.
+    """
+
+    theta0: Tensor
+    sigma_start: Tensor
+    reward_range: tuple[float, float]
+    device: torch.device
+    dtype: torch.dtype = torch.float32
+
+    @property
+    def parameter_dim(self) -> int:
+        """D, the number of policy parameters."""
+        return int(self.theta0.shape[-1])
+
+    @abc.abstractmethod
+    def evaluate(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Run one episode per policy.
+
+        Args:
+            theta: ``[B, D]`` policy parameters.
+            generator: source of the episode's randomness (initial states); ``None`` uses
+                a fixed, task-specific default so that equal ``theta`` give equal returns.
+
+        Returns:
+            ``[B]`` returns, on ``theta``'s device.
+        """
+
+    def check_theta(self, theta: Tensor) -> Tensor:
+        """Validate ``theta: [B, D]`` and move it to the task's device and dtype."""
+        if not isinstance(theta, Tensor):
+            raise TypeError(f"theta must be a torch.Tensor, got {type(theta).__name__}")
+        if theta.dim() != 2 or theta.shape[-1] != self.parameter_dim:
+            raise ValueError(
+                f"theta must have shape [B, {self.parameter_dim}] for {type(self).__name__}, "
+                f"got {list(theta.shape)}"
+            )
+        if not torch.isfinite(theta).all():
+            raise ValueError("theta contains non-finite values (NaN or inf)")
+        return theta.to(device=self.device, dtype=self.dtype)
