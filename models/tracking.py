@@ -1,0 +1,83 @@
+"""Differential inverse kinematics: the WAM's end effector tracking a task-space path.
+
+Damped least squares (Wampler 1986; Nakamura & Hanafusa 1986) on the position rows of the
+pytorch-kinematics geometric Jacobian, batched over paths:
+
+    q_{k+1} = clip(q_k + Jᵀ (J Jᵀ + λ² I)⁻¹ (x*_{k+1} − f(q_k)),  q_min, q_max),
+
+where f is the forward kinematics and x* the desired path. The error term is the distance to
+the next desired point from where the arm *is*, so tracking errors are corrected at the next
+step; clipping at the joint limits and the damping near singularities make paths outside the
+arm's reach come out different from the desired ones. Only the end-effector position is
+controlled; the 4 redundant degrees of freedom take the minimum-norm joint step.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from models.wam import WamKinematics
+
+
+def damped_least_squares_step(jacobian: Tensor, error: Tensor, damping: float) -> Tensor:
+    """Joint step ``[B, n]`` = Jᵀ (J Jᵀ + λ² I)⁻¹ e of ``jacobian: [B, m, n]``, ``error: [B, m]``.
+
+    ``damping`` is λ, in the units of ``error`` (m).
+    """
+    m = jacobian.shape[-2]
+    eye = torch.eye(m, device=jacobian.device, dtype=jacobian.dtype)
+    gram = jacobian @ jacobian.transpose(-1, -2) + damping**2 * eye
+    return (jacobian.transpose(-1, -2) @ torch.linalg.solve(gram, error.unsqueeze(-1))).squeeze(-1)
+
+
+def solve_position_ik(
+    kinematics: WamKinematics,
+    target: Tensor,
+    q_guess: Tensor,
+    damping: float = 1e-2,
+    iterations: int = 300,
+    tolerance: float = 1e-7,
+) -> Tensor:
+    """Joint angles ``[7]`` whose end effector is at ``target: [3]``, by iterated DLS from
+    ``q_guess: [7]``. Raises ``ValueError`` if the target is not reached within ``tolerance``
+    metres (unreachable, or outside the joint limits)."""
+    q = kinematics.clamp_to_limits(q_guess.to(kinematics.joint_lower).reshape(1, -1))
+    target = target.to(q).reshape(1, 3)
+    for _ in range(iterations):
+        position, jacobian = kinematics.position_and_jacobian(q)
+        error = target - position
+        if float(error.norm()) < tolerance:
+            break
+        q = kinematics.clamp_to_limits(q + damped_least_squares_step(jacobian, error, damping))
+    error = float((kinematics.forward_kinematics(q) - target).norm())
+    if error > tolerance:
+        raise ValueError(
+            f"inverse kinematics did not reach {target.tolist()} (residual {error:.3g} m): "
+            "the point may be outside the WAM's workspace"
+        )
+    return q[0]
+
+
+def track_path(
+    kinematics: WamKinematics, q_start: Tensor, desired: Tensor, damping: float
+) -> tuple[Tensor, Tensor]:
+    """Follow ``desired: [B, T+1, 3]`` from joint angles ``q_start: [7]`` (whose end effector
+    is ``desired[:, 0]``) with DLS differential IK.
+
+    Returns:
+        ``joints: [B, T+1, 7]`` and the end-effector path ``positions: [B, T+1, 3]`` the arm
+        actually makes (``positions[:, k] = f(joints[:, k])``).
+    """
+    batch, horizon = desired.shape[0], desired.shape[1]
+    q = q_start.to(desired).expand(batch, -1)
+    joints, positions = [], []
+    for step in range(horizon - 1):
+        position, jacobian = kinematics.position_and_jacobian(q)
+        joints.append(q)
+        positions.append(position)
+        step_q = damped_least_squares_step(jacobian, desired[:, step + 1] - position, damping)
+        q = kinematics.clamp_to_limits(q + step_q)
+    joints.append(q)
+    positions.append(kinematics.forward_kinematics(q))
+    return torch.stack(joints, dim=1), torch.stack(positions, dim=1)

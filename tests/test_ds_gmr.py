@@ -1,0 +1,75 @@
+"""DS-GMR: GMR attractor path, critically damped spring-damper, differentiability."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from models.ds_gmr import DSGMR
+
+F64 = torch.float64
+
+
+def test_attractor_path_is_time_weighted_average_of_centres():
+    ds = DSGMR(3, duration=2.4, dt=0.02, stiffness=100.0, time_std=0.28, dtype=F64)
+    theta = torch.randn(4, 9, dtype=F64, generator=torch.Generator().manual_seed(0))
+    path = ds.attractor_path(theta)
+    centres = torch.tensor([0.0, 0.8, 1.6], dtype=F64)
+    log_h = -0.5 * ((ds.times[:, None] - centres) / 0.28) ** 2  # equal weights and σ_t
+    h = torch.softmax(log_h, dim=-1)  # [T+1, K]
+    expected = torch.einsum("tk,bkd->btd", h, theta.reshape(4, 3, 3))
+    assert path.shape == (4, 121, 3)
+    torch.testing.assert_close(path, expected)
+
+
+def test_critically_damped_step_response():
+    ds = DSGMR(1, duration=3.0, dt=0.001, stiffness=64.0, dim=1, dtype=F64)
+    assert ds.damping == pytest.approx(2 * math.sqrt(64.0))
+    path = ds.rollout(torch.ones(1, 1, dtype=F64), torch.zeros(1, dtype=F64))[0, :, 0]
+    analytic = 1 - (1 + 8.0 * ds.times) * torch.exp(-8.0 * ds.times)  # x(t) for ζ = 1, ω = 8
+    assert float(path.max()) <= 1.0  # no overshoot
+    torch.testing.assert_close(path, analytic, atol=5e-3, rtol=0)
+
+
+def test_straight_line_policy_starts_and_ends_at_rest():
+    ds = DSGMR(3, duration=2.4, dt=0.02, stiffness=100.0, time_std=0.28, dtype=F64)
+    start = torch.tensor([0.5, -0.35, 0.0], dtype=F64)
+    target = torch.tensor([0.5, 0.35, 0.0], dtype=F64)
+    theta = torch.stack([start, (start + target) / 2, target]).reshape(1, 9)
+    path = ds.rollout(theta, start)[0]
+    torch.testing.assert_close(path[0], start)
+    assert float((path[1] - path[0]).norm()) < 1e-3  # starts from rest
+    assert float((path[-1] - target).norm()) < 1e-3
+    assert float((path[-1] - path[-2]).norm() / ds.dt) < 5e-3  # ends (almost) at rest
+    # On the straight line throughout.
+    torch.testing.assert_close(path[:, [0, 2]], start[[0, 2]].expand(121, 2))
+
+
+def test_rollout_gradient_matches_finite_differences():
+    ds = DSGMR(2, duration=0.5, dt=0.05, stiffness=50.0, dim=2, dtype=F64)
+    theta = torch.randn(3, 4, dtype=F64, generator=torch.Generator().manual_seed(1))
+    start = torch.tensor([0.1, -0.2], dtype=F64)
+    assert torch.autograd.gradcheck(
+        lambda th: ds.rollout(th, start)[:, -3:], (theta.requires_grad_(),)
+    )
+
+
+def test_bad_inputs_raise():
+    with pytest.raises(ValueError, match="multiple of dt"):
+        DSGMR(3, duration=1.0, dt=0.3, stiffness=10.0)
+    with pytest.raises(ValueError, match="positive"):
+        DSGMR(3, duration=1.0, dt=0.1, stiffness=-1.0)
+    with pytest.raises(ValueError, match="num_attractors"):
+        DSGMR(0, duration=1.0, dt=0.1, stiffness=1.0)
+    ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0)
+    with pytest.raises(ValueError, match="shape"):
+        ds.rollout(torch.zeros(2, 8), torch.zeros(3))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_runs_on_cuda():
+    ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0, device="cuda")
+    path = ds.rollout(torch.zeros(5, 9, device="cuda"), torch.zeros(3, device="cuda"))
+    assert path.device.type == "cuda" and path.shape == (5, 11, 3)
