@@ -1,0 +1,128 @@
+"""Throughput of the batched torch cart-pole against gymnasium's CartPole-v1.
+
+Environment steps per second, linear policy included, for B parallel episodes:
+
+* ``torch``: :meth:`tasks.cartpole.CartPoleTask.evaluate` (one batched rollout, 1000 steps),
+* ``gym single``: ``gymnasium.make("CartPole-v1")`` stepped B times in a Python loop
+  (the policy evaluated per step in numpy),
+* ``gym SyncVectorEnv``: ``gymnasium.vector.SyncVectorEnv`` of B CartPole-v1 copies,
+* ``gym numpy vector``: gymnasium's own numpy-vectorised ``CartPoleVectorEnv``
+  (``make_vec(..., vectorization_mode="vector_entry_point")``).
+
+Gymnasium's CartPole-v1 takes discrete actions: its policy is ``action = θᵀx > 0``; ours is the
+continuous ``u = clip(θᵀx)``. The gymnasium environments reset automatically when an
+episode ends; ours freezes failed episodes (the work per step is the same either way).
+Run: ``python benchmarks/bench_rollout.py [--threads N] [--device cuda]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from tasks.cartpole import CartPoleTask
+
+THETA = np.array([0.91, 2.14, 30.9, 7.9])  # an LQR gain: long episodes, few resets
+
+
+def steps_per_second(run, total_steps: int, repeats: int = 3) -> float:
+    """Best of ``repeats`` timings of ``run()`` (which performs ``total_steps`` env steps)."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - start)
+    return total_steps / best
+
+
+def bench_torch(batch: int, steps: int, device: str) -> float:
+    task = CartPoleTask(steps=steps, device=device)
+    theta = torch.as_tensor(THETA, dtype=torch.float32).expand(batch, 4).contiguous()
+    generator = torch.Generator().manual_seed(0)
+    task.evaluate(theta[:2], generator)  # warm-up
+
+    def run():
+        task.evaluate(theta, generator)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    return steps_per_second(run, batch * steps)
+
+
+def bench_gym_single(batch: int, steps: int) -> float:
+    env = gym.make("CartPole-v1")
+    theta = THETA.astype(np.float32)
+
+    def run():
+        for b in range(batch):
+            obs, _ = env.reset(seed=b)
+            for _ in range(steps):
+                obs, _, terminated, truncated, _ = env.step(int(obs @ theta > 0))
+                if terminated or truncated:
+                    obs, _ = env.reset()
+
+    return steps_per_second(run, batch * steps, repeats=1)
+
+
+def bench_gym_vector(env: gym.vector.VectorEnv, batch: int, steps: int) -> float:
+    theta = THETA.astype(np.float32)
+
+    def run():
+        obs, _ = env.reset(seed=0)
+        for _ in range(steps):
+            obs, *_ = env.step((obs @ theta > 0).astype(np.int64))
+
+    return steps_per_second(run, batch * steps)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--steps", type=int, default=1000, help="steps per episode")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    steps = args.steps
+    print(
+        f"torch {torch.__version__}, gymnasium {gym.__version__}, device {args.device}, "
+        f"{torch.get_num_threads()} torch threads, {steps} steps per episode"
+    )
+    header = f"{'B':>6} | {'implementation':<20} | {'steps':>9} | {'env steps/s':>12} | torch ÷ it"
+    print(header)
+    print("-" * len(header))
+    for batch in (1, 100, 10000):
+        results: list[tuple[str, int, float]] = []
+        results.append(("torch (ours)", steps, bench_torch(batch, steps, args.device)))
+        single_batch = min(batch, 100)  # a Python loop over envs: B=10000 would take minutes
+        results.append(
+            (
+                f"gym single (B={single_batch})",
+                steps,
+                bench_gym_single(single_batch, steps),
+            )
+        )
+        sync_steps = steps if batch <= 100 else 50  # SyncVectorEnv at B=10000 is slow
+        sync = gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * batch)
+        results.append(("gym SyncVectorEnv", sync_steps, bench_gym_vector(sync, batch, sync_steps)))
+        sync.close()
+        numpy_vec = gym.make_vec(
+            "CartPole-v1", num_envs=batch, vectorization_mode="vector_entry_point"
+        )
+        results.append(("gym numpy vector", steps, bench_gym_vector(numpy_vec, batch, steps)))
+        numpy_vec.close()
+        ours = results[0][2]
+        for name, n_steps, rate in results:
+            print(f"{batch:>6} | {name:<20} | {n_steps:>9} | {rate:>12.3e} | {ours / rate:8.2f}x")
+    print(
+        "steps = time steps per episode measured (SyncVectorEnv at B=10000: 50 only; "
+        "'gym single' loops over at most 100 envs one after the other)."
+    )
+
+
+if __name__ == "__main__":
+    main()

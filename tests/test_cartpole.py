@@ -1,0 +1,149 @@
+"""Cart-pole task: physics against gymnasium, rewards, batching, input checks."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from tasks.cartpole import CartPoleTask
+
+LQR_GAIN = [0.91, 2.14, 30.9, 7.9]  # discrete LQR, Q = diag(1, 1, 10, 1), R = 1
+
+
+def test_step_matches_gymnasium_cartpole_v1():
+    """Same state and force (±force_mag): our step equals gymnasium's CartPole-v1 step."""
+    env = gym.make("CartPole-v1").unwrapped
+    task = CartPoleTask(dtype=torch.float64)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        state = rng.uniform(-0.2, 0.2, size=4)
+        action = int(rng.integers(2))
+        env.reset(seed=0)
+        env.state = state.copy()
+        expected, *_ = env.step(action)
+        force = torch.tensor([10.0 if action == 1 else -10.0], dtype=torch.float64)
+        ours = task.step(torch.tensor(state).unsqueeze(0), force)[0].numpy()
+        np.testing.assert_allclose(ours, expected, rtol=1e-6, atol=1e-6)  # gym returns float32
+
+
+def test_pole_falls_freely_the_way_it_leans():
+    """No force: a leaning pole accelerates away from vertical, the cart recoils."""
+    task = CartPoleTask(dtype=torch.float64)
+    state = torch.tensor([[0.0, 0.0, 0.01, 0.0]], dtype=torch.float64)
+    angles, positions = [], []
+    for _ in range(40):
+        state = task.step(state, torch.zeros(1, dtype=torch.float64))
+        angles.append(state[0, 2].item())
+        positions.append(state[0, 0].item())
+    assert all(
+        b > a for a, b in zip(angles[1:], angles[2:], strict=False)
+    )  # monotone fall to the right
+    assert positions[-1] < 0  # the cart is pushed the other way
+    # Small-angle linearisation: φ̈ ≈ g φ / (l (4/3 - m_p / m_total)).
+    rate = math.sqrt(task.gravity / (task.length * (4 / 3 - task.masspole / task.total_mass)))
+    state = torch.tensor([[0.0, 0.0, 1e-3, 0.0]], dtype=torch.float64)
+    state = task.step(state, torch.zeros(1, dtype=torch.float64))
+    assert state[0, 3].item() / 1e-3 == pytest.approx(rate**2 * task.tau, rel=1e-3)
+
+
+def test_upright_pole_at_rest_stays_and_scores_every_step():
+    task = CartPoleTask()
+    r = task.evaluate(torch.tensor([[1.0, 2.0, 30.0, 5.0]]), initial_state=torch.zeros(4))
+    assert r.item() == 1000.0
+
+
+def test_no_control_fails_and_return_counts_absorbing_penalty():
+    task = CartPoleTask(steps=200)
+    r = task.evaluate(torch.zeros(1, 4), initial_state=torch.tensor([0.0, 0.0, 0.04, 0.0]))
+    # Manual rollout: +1 while |φ| < π/60, 0 in between, -1 from the failing step on.
+    state, total, failed = torch.tensor([[0.0, 0.0, 0.04, 0.0]]), 0.0, False
+    for _ in range(200):
+        if not failed:
+            state = task.step(state, torch.zeros(1))
+            failed = bool(task.failed(state))
+        angle = abs(state[0, 2].item())
+        total += -1.0 if failed else (1.0 if angle < math.pi / 60 else 0.0)
+    assert failed and r.item() == total
+    assert -200 < r.item() < 0
+
+
+def test_returns_in_reward_range_and_good_policy_scores_high():
+    task = CartPoleTask()
+    generator = torch.Generator().manual_seed(0)
+    theta = task.theta0 + torch.randn(500, 4, generator=generator) * task.sigma_start.diag().sqrt()
+    r = task.evaluate(theta, generator)
+    low, high = task.reward_range
+    assert r.shape == (500,) and (r >= low).all() and (r <= high).all()
+    assert task.evaluate(task.theta0.unsqueeze(0)).item() < -900  # θ0: no control
+    good = task.evaluate(torch.tensor([LQR_GAIN]).expand(100, 4), generator)
+    assert (good >= 990).all()
+
+
+def test_batch_independence():
+    task = CartPoleTask()
+    generator = torch.Generator().manual_seed(1)
+    theta = torch.tensor(LQR_GAIN) + 5 * torch.randn(6, 4, generator=generator)
+    batched = task.evaluate(theta)
+    alone = torch.cat([task.evaluate(row.unsqueeze(0)) for row in theta])
+    assert torch.equal(batched, alone)
+    starts = task.sample_initial_state(6, generator)
+    batched = task.evaluate(theta, initial_state=starts)
+    alone = torch.cat(
+        [task.evaluate(t[None], initial_state=s) for t, s in zip(theta, starts, strict=True)]
+    )
+    assert torch.equal(batched, alone)
+
+
+def test_determinism_and_generator():
+    task = CartPoleTask()
+    theta = torch.tensor([[0.0, 0.0, 12.0, 1.0]]).expand(50, 4)
+    assert torch.equal(task.evaluate(theta), task.evaluate(theta))
+    one = task.evaluate(theta, torch.Generator().manual_seed(3))
+    assert torch.equal(one, task.evaluate(theta, torch.Generator().manual_seed(3)))
+    assert one.unique().numel() > 1  # different random starts per row
+    starts = task.sample_initial_state(1000, torch.Generator().manual_seed(0))
+    assert (starts[:, [0, 1, 3]] == 0).all() and (starts[:, 2].abs() <= 0.05).all()
+
+
+def test_float64_matches_float32_for_robust_policy():
+    theta = torch.tensor([LQR_GAIN])
+    r32 = CartPoleTask().evaluate(theta)
+    r64 = CartPoleTask(dtype=torch.float64).evaluate(theta.double())
+    assert r32.item() == r64.item()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"steps": -1}, "steps"),
+        ({"steps": 0}, "steps"),
+        ({"force_limit": 0.0}, "force_limit"),
+        ({"initial_angle": 1.0}, "initial_angle"),
+        ({"theta0": [0.0, 1.0]}, "theta0"),
+        ({"exploration_std": [1.0, -1.0, 1.0, 1.0]}, "exploration_std"),
+    ],
+)
+def test_bad_constructor_arguments(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        CartPoleTask(**kwargs)
+
+
+def test_bad_evaluate_inputs():
+    task = CartPoleTask()
+    with pytest.raises(ValueError, match="shape"):
+        task.evaluate(torch.zeros(3, 5))
+    with pytest.raises(ValueError, match="non-finite"):
+        task.evaluate(torch.tensor([[float("nan"), 0.0, 0.0, 0.0]]))
+    with pytest.raises(TypeError, match="theta"):
+        task.evaluate([[0.0, 0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="initial_state"):
+        task.evaluate(torch.zeros(2, 4), initial_state=torch.zeros(3, 4))
+
+
+def test_start_distribution_shapes():
+    task = CartPoleTask()
+    assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
+    assert task.reward_range == (-1000.0, 1000.0)
+    torch.linalg.cholesky(task.sigma_start)
