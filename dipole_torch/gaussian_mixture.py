@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 from torch.distributions import Categorical, MixtureSameFamily, MultivariateNormal
 
-from dipole_torch.random import draw
+from dipole_torch.sampling import draw
 from dipole_torch.validation import check_positive_definite
 
 
@@ -38,6 +38,12 @@ class GaussianMixture:
     ):
         if validate_args:
             _check_parameters(weights, means, covariances)
+        # Broadcast the three batch shapes, as torch.distributions does for its parameters.
+        k, d = means.shape[-2:]
+        batch = torch.broadcast_shapes(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
+        weights = weights.expand(*batch, k)
+        means = means.expand(*batch, k, d)
+        covariances = covariances.expand(*batch, k, d, d)
         self.weights = weights / weights.sum(-1, keepdim=True)
         self.means = means
         self.covariances = covariances
@@ -239,16 +245,20 @@ def _check_parameters(weights: Tensor, means: Tensor, covariances: Tensor) -> No
     if weights.dim() < 1 or weights.shape[-1] < 1:
         raise ValueError(f"weights must have shape [..., K] with K >= 1, got {list(weights.shape)}")
     k = weights.shape[-1]
-    if means.dim() < 2 or means.shape[:-1] != weights.shape:
-        raise ValueError(
-            f"means must have shape [..., K, D] = {list(weights.shape)} + [D], "
-            f"got {list(means.shape)}"
-        )
+    if means.dim() < 2 or means.shape[-2] != k:
+        raise ValueError(f"means must have shape [..., K={k}, D], got {list(means.shape)}")
     d = means.shape[-1]
-    if covariances.shape != means.shape + (d,):
+    if covariances.dim() < 3 or covariances.shape[-3:] != (k, d, d):
         raise ValueError(
             f"covariances must have shape [..., {k}, {d}, {d}], got {list(covariances.shape)}"
         )
+    try:
+        torch.broadcast_shapes(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
+    except RuntimeError as error:
+        raise ValueError(
+            "the batch shapes of weights, means and covariances do not broadcast: "
+            f"{list(weights.shape[:-1])}, {list(means.shape[:-2])}, {list(covariances.shape[:-3])}"
+        ) from error
     if (weights < 0).any() or (weights.sum(-1) <= 0).any():
         raise ValueError("weights must be non-negative with a positive sum")
     check_positive_definite(covariances, "covariances")

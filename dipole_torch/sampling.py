@@ -41,7 +41,7 @@ def draw(
     """
     if generator is None:
         return distribution.sample(torch.Size(sample_shape))
-    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator))
+    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
     device = _device_of(distribution)
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices, device_type=device.type):

@@ -1,0 +1,140 @@
+"""The DP mixture: Inverse-Wishart convention, cluster recovery, eq. 6's reward weighting."""
+
+import pytest
+import torch
+from sklearn.metrics import adjusted_rand_score
+
+from dipole_torch import DPMixtureState, NormalInverseWishartPrior, fit_dp_mixture, neal8_sweep
+
+F64 = torch.float64
+
+
+def separated_centres(k, d, generator, min_distance=10.0):
+    while True:
+        centres = 6.0 * torch.randn(k, d, generator=generator, dtype=F64)
+        if torch.pdist(centres).min() > min_distance:
+            return centres
+
+
+def clustering_prior(y, component_variance=2.0, extra_df=6):
+    """Means spread like the data; component covariances of the right order (here twice the
+    true unit variance), as DIPOLE's prior takes them from the exploration noise."""
+    d = y.shape[1]
+    df = d + extra_df
+    return NormalInverseWishartPrior(
+        mean_loc=y.mean(0),
+        mean_covariance=torch.cov(y.T),
+        df=float(df),
+        scale=(df - d - 1) * component_variance * torch.eye(d, dtype=F64),
+        regularization=1e-3 * torch.eye(d, dtype=F64),
+    )
+
+
+def test_inverse_wishart_convention_moment():
+    # Σ = W⁻¹ with W ~ Wishart(df=ν, precision_matrix=Ψ) must have E[Σ] = Ψ / (ν − D − 1).
+    d = 3
+    a = torch.randn(d, d, generator=torch.Generator().manual_seed(0), dtype=F64)
+    psi = a @ a.T + d * torch.eye(d, dtype=F64)
+    prior = NormalInverseWishartPrior.from_exploration(torch.zeros(d, dtype=F64), psi, df=9.0)
+    draws = prior.sample_inverse_wishart(9.0, prior.scale.expand(40000, d, d), torch.Generator())
+    expected = prior.scale / (9.0 - d - 1)
+    torch.testing.assert_close(draws.mean(0), expected, rtol=0.05, atol=0.05)
+    torch.testing.assert_close(prior.expected_covariance, psi)
+
+
+@pytest.mark.parametrize("d, k", [(2, 3), (2, 5), (10, 3), (10, 5)])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_recovers_well_separated_clusters(d, k, seed):
+    g = torch.Generator().manual_seed(seed)
+    true = torch.arange(k).repeat_interleave(240 // k)
+    y = separated_centres(k, d, g)[true] + torch.randn(len(true), d, generator=g, dtype=F64)
+    state = fit_dp_mixture(y, clustering_prior(y), num_sweeps=15, generator=g, init="sequential")
+    # The DP posterior keeps a few stray points of a cluster's tail in tiny clusters; the
+    # clusters that matter each hold >= 5 % of the data.
+    substantial = int((state.counts >= 0.05 * len(y)).sum())
+    assert substantial == k
+    assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_algorithm1_start_splits_a_single_component(seed):
+    # From Algorithm 1's single component, new clusters can only come from the auxiliary
+    # components (second line of eq. 5): this fails if that term is broken.
+    g = torch.Generator().manual_seed(seed)
+    true = torch.arange(3).repeat_interleave(60)
+    y = separated_centres(3, 2, g)[true] + torch.randn(180, 2, generator=g, dtype=F64)
+    state = fit_dp_mixture(y, clustering_prior(y), num_sweeps=25, generator=g, init="single")
+    assert int((state.counts >= 9).sum()) == 3
+    assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
+
+
+@pytest.mark.parametrize("d", [2, 10])
+def test_single_blob_stays_one_cluster(d):
+    g = torch.Generator().manual_seed(4)
+    y = torch.randn(200, d, generator=g, dtype=F64) * 0.7 + 3.0
+    prior = NormalInverseWishartPrior.from_exploration(
+        torch.zeros(d, dtype=F64), torch.eye(d, dtype=F64), df=d + 6
+    )
+    state = fit_dp_mixture(y, prior, num_sweeps=15, generator=g, init="sequential")
+    assert int(state.counts.max()) >= 0.95 * 200
+
+
+def test_eq6_reward_weights_scale_label_probabilities():
+    """A point equally likely under two equal-sized components goes to each with odds r_A/r_B.
+
+    y = [θ, w]: components A and B sit at θ = ∓2 with mean reward weights 0.8 and 0.2; the
+    test point sits at θ = 0 with w = 0.5, where both densities are equal by symmetry. Eq. 6
+    gives P(A) = 0.8 / (0.8 + 0.2) = 0.8; eq. 5 (unweighted) gives 0.5.
+    """
+    n = 20
+    centres = torch.tensor([[-2.0, 0.0, 0.8], [2.0, 0.0, 0.2]], dtype=F64)
+    y = torch.cat((centres.repeat_interleave(n, 0), torch.tensor([[0.0, 0.0, 0.5]], dtype=F64)))
+    cov = torch.diag(torch.tensor([1.0, 1.0, 0.3], dtype=F64))
+    prior = NormalInverseWishartPrior.from_exploration(torch.zeros(3, dtype=F64), cov, df=8.0)
+    labels = torch.cat((torch.arange(2).repeat_interleave(n), torch.tensor([0])))
+    state = DPMixtureState(labels, centres.clone(), cov.expand(2, 3, 3).clone(), prior)
+
+    def frequency_of_a(weighted):
+        hits = 0
+        g = torch.Generator().manual_seed(0)
+        for _ in range(300):
+            out = neal8_sweep(y, state, alpha=1e-12, m=1, reward_weighted=weighted, generator=g)
+            hits += int(out.labels[-1] == out.labels[0])
+        return hits / 300
+
+    assert abs(frequency_of_a(True) - 0.8) < 0.07
+    assert abs(frequency_of_a(False) - 0.5) < 0.09
+
+
+def test_sweep_is_reproducible_from_the_generator():
+    y = torch.randn(50, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
+    prior = clustering_prior(y)
+    a = fit_dp_mixture(y, prior, 3, generator=torch.Generator().manual_seed(7))
+    b = fit_dp_mixture(y, prior, 3, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(a.labels, b.labels) and torch.equal(a.means, b.means)
+
+
+def test_global_rng_is_untouched():
+    y = torch.randn(30, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    fit_dp_mixture(y, clustering_prior(y), 2, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(torch.rand(3), expected)
+
+
+def test_bad_inputs_are_rejected():
+    y = torch.randn(10, 2, dtype=F64)
+    prior = clustering_prior(y)
+    with pytest.raises(ValueError, match="y must have shape"):
+        fit_dp_mixture(torch.randn(10, 3, dtype=F64), prior)
+    bad = y.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="y contains non-finite"):
+        fit_dp_mixture(bad, prior)
+    with pytest.raises(ValueError, match="alpha"):
+        fit_dp_mixture(y, prior, alpha=0.0)
+    with pytest.raises(ValueError, match="positive definite"):
+        NormalInverseWishartPrior.from_exploration(torch.zeros(2), -torch.eye(2))
+    with pytest.raises(ValueError, match="df must exceed"):
+        NormalInverseWishartPrior.from_exploration(torch.zeros(2), torch.eye(2), df=2.5)

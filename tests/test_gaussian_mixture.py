@@ -1,0 +1,124 @@
+import numpy as np
+import pytest
+import torch
+from scipy.stats import multivariate_normal
+
+from dipole_torch import GaussianMixture
+
+
+def random_mixture(batch=(), k=3, d=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    weights = torch.rand(*batch, k, generator=g, dtype=torch.float64) + 0.1
+    means = 2 * torch.randn(*batch, k, d, generator=g, dtype=torch.float64)
+    a = torch.randn(*batch, k, d, d, generator=g, dtype=torch.float64)
+    covs = a @ a.transpose(-1, -2) + 0.5 * torch.eye(d, dtype=torch.float64)
+    return GaussianMixture(weights, means, covs)
+
+
+def scipy_log_prob(gm, x):
+    w = gm.weights.numpy()
+    dens = sum(
+        w[k] * multivariate_normal(gm.means[k].numpy(), gm.covariances[k].numpy()).pdf(x)
+        for k in range(gm.num_components)
+    )
+    return np.log(dens)
+
+
+def test_log_prob_matches_scipy_and_torch_mixture():
+    gm = random_mixture()
+    x = torch.randn(7, 3, dtype=torch.float64)
+    expected = scipy_log_prob(gm, x.numpy())
+    np.testing.assert_allclose(gm.log_prob(x).numpy(), expected, rtol=1e-10)
+    np.testing.assert_allclose(gm.to_distribution().log_prob(x).numpy(), expected, rtol=1e-10)
+
+
+def test_batch_shapes_follow_torch_distributions():
+    gm = random_mixture(batch=(4, 2))
+    assert gm.batch_shape == (4, 2) and gm.event_shape == (3,)
+    assert gm.log_prob(torch.zeros(5, 4, 2, 3, dtype=torch.float64)).shape == (5, 4, 2)
+    sample = gm.sample((6,), generator=torch.Generator().manual_seed(0))
+    assert sample.shape == (6, 4, 2, 3)
+    assert gm.to_distribution().batch_shape == (4, 2)
+    # Broadcasting batch shapes of the parameters, like torch.distributions.
+    broad = GaussianMixture(gm.weights[0, 0], gm.means, gm.covariances[0, 0])
+    assert broad.batch_shape == (4, 2)
+
+
+def test_sample_is_reproducible_and_has_the_right_moments():
+    gm = random_mixture(seed=3)
+    a = gm.sample(20000, generator=torch.Generator().manual_seed(1))
+    b = gm.sample(20000, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(a, b)
+    torch.testing.assert_close(a.mean(0), gm.mean, atol=0.08, rtol=0)
+    torch.testing.assert_close(torch.cov(a.T), gm.covariance_matrix, atol=0.3, rtol=0.05)
+
+
+def test_condition_matches_hand_derived_gmr():
+    # Two 2-D components; condition on x0 = 1 and predict x1 by hand.
+    weights = torch.tensor([0.3, 0.7], dtype=torch.float64)
+    means = torch.tensor([[0.0, 1.0], [2.0, -1.0]], dtype=torch.float64)
+    covs = torch.tensor([[[1.0, 0.5], [0.5, 2.0]], [[2.0, -0.4], [-0.4, 1.0]]], dtype=torch.float64)
+    gm = GaussianMixture(weights, means, covs)
+    x0 = 1.0
+    lik = [multivariate_normal(means[k, 0].item(), covs[k, 0, 0].item()).pdf(x0) for k in range(2)]
+    h = np.array([0.3 * lik[0], 0.7 * lik[1]])
+    h /= h.sum()
+    mu = [1.0 + 0.5 / 1.0 * (x0 - 0.0), -1.0 + (-0.4) / 2.0 * (x0 - 2.0)]
+    var = [2.0 - 0.5**2 / 1.0, 1.0 - 0.4**2 / 2.0]
+    cond = gm.condition([0], torch.tensor([x0], dtype=torch.float64))
+    np.testing.assert_allclose(cond.weights.numpy(), h, rtol=1e-10)
+    np.testing.assert_allclose(cond.means[:, 0].numpy(), mu, rtol=1e-10)
+    np.testing.assert_allclose(cond.covariances[:, 0, 0].numpy(), var, rtol=1e-10)
+    np.testing.assert_allclose(cond.mean.item(), float(h @ np.array(mu)), rtol=1e-10)
+
+
+def test_condition_equals_joint_over_marginal():
+    # p(x_b | x_a) = p(x_a, x_b) / p(x_a) for any mixture.
+    gm = random_mixture(k=4, d=4, seed=5)
+    y = torch.randn(9, 4, dtype=torch.float64)
+    dims = [1, 3]
+    cond = gm.condition(dims, y[:, dims])
+    lhs = cond.log_prob(y[:, [0, 2]])
+    rhs = gm.log_prob(y) - gm.marginal(dims).log_prob(y[:, dims])
+    torch.testing.assert_close(lhs, rhs)
+    assert cond.batch_shape == (9,)
+
+
+def test_state_dict_round_trip():
+    gm = random_mixture(seed=2)
+    restored = GaussianMixture.from_state_dict(gm.state_dict())
+    x = torch.randn(5, 3, dtype=torch.float64)
+    assert torch.equal(restored.log_prob(x), gm.log_prob(x))
+    other = random_mixture(seed=9)
+    other.load_state_dict(gm.state_dict())
+    assert torch.equal(other.log_prob(x), gm.log_prob(x))
+
+
+@pytest.mark.parametrize(
+    "weights, means, covs, message",
+    [
+        (torch.ones(2), torch.zeros(3, 2), torch.eye(2).expand(2, 2, 2), "means must have shape"),
+        (torch.ones(2), torch.zeros(2, 2), torch.eye(3).expand(2, 3, 3), "covariances must"),
+        (-torch.ones(2), torch.zeros(2, 2), torch.eye(2).expand(2, 2, 2), "non-negative"),
+        (torch.ones(2), torch.zeros(2, 2), -torch.eye(2).expand(2, 2, 2), "positive definite"),
+        (
+            torch.ones(2),
+            torch.full((2, 2), float("nan")),
+            torch.eye(2).expand(2, 2, 2),
+            "non-finite",
+        ),
+    ],
+)
+def test_bad_parameters_are_rejected(weights, means, covs, message):
+    with pytest.raises(ValueError, match=message):
+        GaussianMixture(weights, means, covs)
+
+
+def test_bad_condition_arguments_are_rejected():
+    gm = random_mixture()
+    with pytest.raises(ValueError, match="distinct integers"):
+        gm.condition([0, 0], torch.zeros(2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="len\\(dims\\)"):
+        gm.condition([0], torch.zeros(2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="every dimension"):
+        gm.condition([0, 1, 2], torch.zeros(3, dtype=torch.float64))
