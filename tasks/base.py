@@ -48,6 +48,16 @@ class EpisodicTask(abc.ABC):
             ``[B]`` returns, on ``theta``'s device.
         """
 
+    def describe_policies(self, theta: Tensor) -> list[str]:
+        """One line per policy for the end-of-run summary (e.g. the route a viapoint policy
+        takes); ``theta: [K, D]``. Empty strings by default."""
+        return [""] * theta.shape[0]
+
+    def plot_policies(self, theta: Tensor):
+        """A matplotlib figure of the policies ``theta: [K, D]`` for TensorBoard, or ``None``
+        (the default) when the task has nothing to draw."""
+        return None
+
     def check_theta(self, theta: Tensor) -> Tensor:
         """Validate ``theta: [B, D]`` and move it to the task's device and dtype."""
         if not isinstance(theta, Tensor):
