@@ -3,6 +3,8 @@
 Environment steps per second, linear policy included, for B parallel episodes:
 
 * ``torch``: :meth:`tasks.cartpole.CartPoleTask.evaluate` (one batched rollout, 1000 steps),
+  eager and with ``compile=True`` (its one-off compilation, ~1 min on CPU the first time,
+  is excluded from the timing: the warm-up call pays it),
 * ``gym single``: ``gymnasium.make("CartPole-v1")`` stepped B times in a Python loop
   (the policy evaluated per step in numpy),
 * ``gym SyncVectorEnv``: ``gymnasium.vector.SyncVectorEnv`` of B CartPole-v1 copies,
@@ -39,11 +41,11 @@ def steps_per_second(run, total_steps: int, repeats: int = 3) -> float:
     return total_steps / best
 
 
-def bench_torch(batch: int, steps: int, device: str) -> float:
-    task = CartPoleTask(steps=steps, device=device)
+def bench_torch(batch: int, steps: int, device: str, compile: bool = False) -> float:
+    task = CartPoleTask(steps=steps, device=device, compile=compile)
     theta = torch.as_tensor(THETA, dtype=torch.float32).expand(batch, 4).contiguous()
     generator = torch.Generator().manual_seed(0)
-    task.evaluate(theta[:2], generator)  # warm-up
+    task.evaluate(theta[:2], generator)  # warm-up (and compilation)
 
     def run():
         task.evaluate(theta, generator)
@@ -84,6 +86,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--steps", type=int, default=1000, help="steps per episode")
+    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -92,12 +95,18 @@ def main() -> None:
         f"torch {torch.__version__}, gymnasium {gym.__version__}, device {args.device}, "
         f"{torch.get_num_threads()} torch threads, {steps} steps per episode"
     )
-    header = f"{'B':>6} | {'implementation':<20} | {'steps':>9} | {'env steps/s':>12} | torch ÷ it"
+    header = (
+        f"{'B':>6} | {'implementation':<20} | {'steps':>9} | {'env steps/s':>12} | "
+        "torch ÷ it | compiled ÷ it"
+    )
     print(header)
     print("-" * len(header))
     for batch in (1, 100, 10000):
         results: list[tuple[str, int, float]] = []
         results.append(("torch (ours)", steps, bench_torch(batch, steps, args.device)))
+        if not args.no_compile:
+            rate = bench_torch(batch, steps, args.device, compile=True)
+            results.append(("torch compiled", steps, rate))
         single_batch = min(batch, 100)  # a Python loop over envs: B=10000 would take minutes
         results.append(
             (
@@ -116,8 +125,12 @@ def main() -> None:
         results.append(("gym numpy vector", steps, bench_gym_vector(numpy_vec, batch, steps)))
         numpy_vec.close()
         ours = results[0][2]
+        compiled = results[1][2] if not args.no_compile else float("nan")
         for name, n_steps, rate in results:
-            print(f"{batch:>6} | {name:<20} | {n_steps:>9} | {rate:>12.3e} | {ours / rate:8.2f}x")
+            print(
+                f"{batch:>6} | {name:<20} | {n_steps:>9} | {rate:>12.3e} | "
+                f"{ours / rate:9.2f}x | {compiled / rate:12.2f}x"
+            )
     print(
         "steps = time steps per episode measured (SyncVectorEnv at B=10000: 50 only; "
         "'gym single' loops over at most 100 envs one after the other)."

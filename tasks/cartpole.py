@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 
 import torch
@@ -86,6 +87,11 @@ class CartPoleTask(EpisodicTask):
     * ``exploration_std``: standard deviations of the initial exploration, a number or ``[4]``;
       ``sigma_start = diag(exploration_std²)`` (default ``[1, 1, 20, 3]``).
     * ``default_seed``: seed of the start used when ``generator`` is ``None`` (0).
+    * ``compile``: run the rollout through ``torch.compile`` (``False``). The time loop is
+      cut in chunks of ``chunk`` (25) steps; compiled, a chunk becomes one fused kernel, which
+      removes the per-op overhead that dominates small batches (about 30x faster at B = 50
+      on CPU, ~1.5x at B = 10⁴) at the price of a one-off compilation (~1 min on CPU; cached
+      by inductor afterwards). The maths is the same code, compiled or not.
     * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32).
 
     ## Deviations from the paper
@@ -133,11 +139,15 @@ class CartPoleTask(EpisodicTask):
         theta0: Tensor | list[float] | None = None,
         exploration_std: float | list[float] | Tensor = (1.0, 1.0, 20.0, 3.0),
         default_seed: int = 0,
+        compile: bool = False,
+        chunk: int = 25,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> None:
         if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
             raise ValueError(f"steps must be a positive integer, got {steps!r}")
+        if not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1:
+            raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
         if not (math.isfinite(force_limit) and force_limit > 0):
             raise ValueError(f"force_limit must be a positive finite number, got {force_limit!r}")
         if not (math.isfinite(initial_angle) and 0 <= initial_angle < self.angle_threshold):
@@ -149,6 +159,8 @@ class CartPoleTask(EpisodicTask):
         self.force_limit = float(force_limit)
         self.initial_angle = float(initial_angle)
         self.default_seed = int(default_seed)
+        self.compile = bool(compile)
+        self.chunk = chunk
         self.device = torch.device(device)
         self.dtype = dtype
         self.reward_range = (-float(steps), float(steps))
@@ -242,34 +254,60 @@ class CartPoleTask(EpisodicTask):
         with torch.inference_mode(), single_threaded(self.device, theta.shape[0]):
             x, x_dot, angle, angle_dot = state.T.contiguous().clone().unbind(0)
             gains = theta.T.contiguous().unbind(0)
-            force = torch.empty_like(x)
-            magnitude = torch.empty_like(x)
-            ok = torch.empty_like(x, dtype=torch.bool)
             alive = ~self.failed(state)  # bool [B]: no failure so far
             upright_steps = torch.zeros_like(x)  # steps within π/60 before any failure
             alive_steps = torch.zeros_like(x)  # steps before the failing one
-            for t in range(self.steps):
-                if t % 25 == 0 and not alive.any():
+            advance = self._advance_
+            if self.compile:
+                advance = functools.partial(_compiled(CartPoleTask._advance_), self)
+            for start in range(0, self.steps, self.chunk):
+                if not alive.any():
                     break  # every episode has failed: the remaining steps are all -1
-                # policy (eq. 8): u = clip(θᵀx)
-                torch.mul(gains[0], x, out=force)
-                force.addcmul_(gains[1], x_dot).addcmul_(gains[2], angle)
-                force.addcmul_(gains[3], angle_dot).clamp_(-self.force_limit, self.force_limit)
-                # Failed episodes keep integrating, but failure is absorbing: their state no
-                # longer matters (every remaining step is worth -1).
-                self._step_(x, x_dot, angle, angle_dot, force)
-                torch.abs(x, out=magnitude)
-                torch.le(magnitude, self.x_threshold, out=ok)
-                alive.logical_and_(ok)
-                torch.abs(angle, out=magnitude)
-                torch.le(magnitude, self.angle_threshold, out=ok)
-                alive.logical_and_(ok)
-                alive_steps.add_(alive)
-                torch.lt(magnitude, self.upright_angle, out=ok)
-                upright_steps.add_(ok.logical_and_(alive))
+                n = min(self.chunk, self.steps - start)
+                x, x_dot, angle, angle_dot, alive, upright_steps, alive_steps = advance(
+                    n, x, x_dot, angle, angle_dot, *gains, alive, upright_steps, alive_steps
+                )
             # +1 per upright step, -1 per step from the failure on, 0 otherwise.
             total = upright_steps - (self.steps - alive_steps)
         return total.clone()
+
+    def _advance_(
+        self,
+        n: int,
+        x: Tensor,
+        x_dot: Tensor,
+        angle: Tensor,
+        angle_dot: Tensor,
+        gain_x: Tensor,
+        gain_x_dot: Tensor,
+        gain_angle: Tensor,
+        gain_angle_dot: Tensor,
+        alive: Tensor,
+        upright_steps: Tensor,
+        alive_steps: Tensor,
+    ) -> tuple[Tensor, ...]:
+        """``n`` steps of the rollout, policy and reward bookkeeping included (all ``[B]``).
+
+        Failed episodes keep integrating, but failure is absorbing: their state no longer
+        matters (every remaining step is worth -1). Returns the updated tensors.
+        """
+        x, x_dot, angle, angle_dot = x.clone(), x_dot.clone(), angle.clone(), angle_dot.clone()
+        alive, upright_steps, alive_steps = (
+            alive.clone(),
+            upright_steps.clone(),
+            alive_steps.clone(),
+        )
+        for _ in range(n):
+            force = gain_x * x  # the policy, eq. 8: u = clip(θᵀx)
+            force.addcmul_(gain_x_dot, x_dot).addcmul_(gain_angle, angle)
+            force.addcmul_(gain_angle_dot, angle_dot).clamp_(-self.force_limit, self.force_limit)
+            self._step_(x, x_dot, angle, angle_dot, force)
+            angle_magnitude = angle.abs()
+            alive.logical_and_(x.abs() <= self.x_threshold)
+            alive.logical_and_(angle_magnitude <= self.angle_threshold)
+            alive_steps.add_(alive)
+            upright_steps.add_(alive & (angle_magnitude < self.upright_angle))
+        return x, x_dot, angle, angle_dot, alive, upright_steps, alive_steps
 
     def _initial_states(
         self, batch_size: int, generator: torch.Generator | None, initial_state: Tensor | None
@@ -282,6 +320,16 @@ class CartPoleTask(EpisodicTask):
             default = torch.Generator().manual_seed(self.default_seed)
             return self.sample_initial_state(1, default).expand(batch_size, -1).clone()
         return self.sample_initial_state(batch_size, generator)
+
+
+_COMPILED: dict = {}
+
+
+def _compiled(function):
+    """``torch.compile(function, dynamic=True)``, built once per function."""
+    if function not in _COMPILED:
+        _COMPILED[function] = torch.compile(function, dynamic=True)
+    return _COMPILED[function]
 
 
 @contextlib.contextmanager

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
 from torch import Tensor
 
 from tasks.base import EpisodicTask
-from tasks.cartpole import _check_initial_state, _start_distribution, single_threaded
+from tasks.cartpole import _check_initial_state, _compiled, _start_distribution, single_threaded
 
 __all__ = ["MountainCarTask"]
 
@@ -64,7 +65,7 @@ class MountainCarTask(EpisodicTask):
 
     ## Episode End
 
-    Success when ``x ≥ goal_position = 0.5``; the state freezes there. Otherwise the episode
+    Success when ``x ≥ goal_position = 0.5``, which settles the return. Otherwise the episode
     stops after ``steps = 100`` steps.
 
     ## Arguments
@@ -76,6 +77,8 @@ class MountainCarTask(EpisodicTask):
     * ``exploration_std``: standard deviations of the initial exploration, a number or
       ``[4]``; ``sigma_start = diag(exploration_std²)`` (default ``[1, 1, 10, 100]``).
     * ``default_seed``: seed of the start used when ``generator`` is ``None`` (0).
+    * ``compile``, ``chunk``: run the rollout in chunks of ``chunk`` (10) steps, each through
+      ``torch.compile`` when ``compile`` is true (as :class:`tasks.cartpole.CartPoleTask`).
     * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32).
 
     ## Deviations from the paper
@@ -123,11 +126,15 @@ class MountainCarTask(EpisodicTask):
         theta0: Tensor | list[float] | None = None,
         exploration_std: float | list[float] | Tensor = (1.0, 1.0, 10.0, 100.0),
         default_seed: int = 0,
+        compile: bool = False,
+        chunk: int = 10,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> None:
         if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
             raise ValueError(f"steps must be a positive integer, got {steps!r}")
+        if not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1:
+            raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
         if not (math.isfinite(goal_position) and -0.4 < goal_position < self.max_position):
             raise ValueError(
                 f"goal_position must be in (-0.4, {self.max_position}), beyond every start, "
@@ -141,6 +148,8 @@ class MountainCarTask(EpisodicTask):
         self.alpha = float(alpha)
         self.beta = float(beta)
         self.default_seed = int(default_seed)
+        self.compile = bool(compile)
+        self.chunk = chunk
         self.device = torch.device(device)
         self.dtype = dtype
         self.reward_range = (0.0, float(steps))
@@ -157,17 +166,20 @@ class MountainCarTask(EpisodicTask):
             force: ``[B]`` forces, ``±4``.
 
         Returns:
-            ``[B, 2]`` next states.
+            ``[B, 2]`` next states (``state`` is not modified).
         """
-        x, velocity = state.unbind(-1)
-        velocity = (velocity + self.alpha * force - self.beta * torch.cos(3 * x)).clamp(
-            -self.max_speed, self.max_speed
-        )
-        x = x + velocity
-        outside = (x < self.min_position) | (x > self.max_position)
-        x = x.clamp(self.min_position, self.max_position)
-        velocity = torch.where(outside, torch.zeros_like(velocity), velocity)
+        x, velocity = state.clone().unbind(-1)
+        self._step_(x, velocity, force.to(state.dtype))
         return torch.stack((x, velocity), dim=-1)
+
+    def _step_(self, x: Tensor, velocity: Tensor, force: Tensor) -> None:
+        """:meth:`step` in place on ``x, velocity: [B]`` (the rollout's hot loop)."""
+        velocity.add_(force, alpha=self.alpha).sub_(torch.cos(3 * x), alpha=self.beta)
+        velocity.clamp_(-self.max_speed, self.max_speed)
+        x.add_(velocity)
+        outside = (x < self.min_position) | (x > self.max_position)  # hit a wall: stop there
+        x.clamp_(self.min_position, self.max_position)
+        velocity.masked_fill_(outside, 0.0)
 
     @staticmethod
     def features(state: Tensor) -> Tensor:
@@ -212,20 +224,54 @@ class MountainCarTask(EpisodicTask):
         theta = self.check_theta(theta)
         batch_size = theta.shape[0]
         state = self._initial_states(batch_size, generator, initial_state)
-        total = torch.zeros(batch_size, device=self.device, dtype=self.dtype)
         with torch.inference_mode(), single_threaded(self.device, batch_size):
-            done = self.at_goal(state)
-            total = torch.where(done, float(self.steps + 1), total)  # already there: t = 0
-            for t in range(1, self.steps + 1):
-                if t % 10 == 0 and done.all():
+            x, velocity = state.T.contiguous().clone().unbind(0)
+            gains = theta.T.contiguous().unbind(0)
+            done = self.at_goal(state)  # bool [B]: the goal has been reached
+            open_steps = torch.zeros_like(x)  # steps that ended away from the goal
+            advance = self._advance_
+            if self.compile:
+                advance = functools.partial(_compiled(MountainCarTask._advance_), self)
+            for start in range(0, self.steps, self.chunk):
+                if done.all():
                     break  # every car is at the goal
-                state = torch.where(
-                    done.unsqueeze(-1), state, self.step(state, self.policy(theta, state))
-                )
-                arrived = self.at_goal(state) & ~done
-                total = torch.where(arrived, float(self.steps + 1 - t), total)
-                done = done | arrived
+                n = min(self.chunk, self.steps - start)
+                x, velocity, done, open_steps = advance(n, x, velocity, *gains, done, open_steps)
+            # Goal on step t = open_steps + 1: return 101 − t; never: 0.
+            total = torch.where(done, self.steps - open_steps, torch.zeros_like(open_steps))
         return total.clamp(*self.reward_range).clone()
+
+    def _advance_(
+        self,
+        n: int,
+        x: Tensor,
+        velocity: Tensor,
+        gain_x: Tensor,
+        gain_x2: Tensor,
+        gain_xv: Tensor,
+        gain_xv2: Tensor,
+        done: Tensor,
+        open_steps: Tensor,
+    ) -> tuple[Tensor, ...]:
+        """``n`` steps of the rollout, policy and bookkeeping included (all ``[B]``).
+
+        The policy is :meth:`policy` factored as ``θᵀφ = x (θ0 + θ1 x + ẋ (θ2 + θ3 ẋ))``.
+        Cars at the goal keep moving, but their return is settled.
+        """
+        x, velocity, done, open_steps = (
+            x.clone(),
+            velocity.clone(),
+            done.clone(),
+            open_steps.clone(),
+        )
+        for _ in range(n):
+            activation = torch.addcmul(gain_xv, gain_xv2, velocity).mul_(velocity)
+            activation.addcmul_(gain_x2, x).add_(gain_x).mul_(x)
+            force = torch.where(activation >= 0, self.force, -self.force)
+            self._step_(x, velocity, force)
+            done.logical_or_(x >= self.goal_position)
+            open_steps.add_(~done)
+        return x, velocity, done, open_steps
 
     def _initial_states(
         self, batch_size: int, generator: torch.Generator | None, initial_state: Tensor | None

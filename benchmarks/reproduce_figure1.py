@@ -1,0 +1,202 @@
+"""Reproduce Figure 1 of Bruno, Calinon & Caldwell (AAAI 2013): DIPOLE vs PoWER on cart-pole
+and mountain car, 50 learning runs per curve, mean ± std of the reward against trials.
+
+For each task and algorithm, ``--runs`` independent learning runs (seeds 0..runs-1), split in
+``--chunks`` jobs spread over ``--workers`` processes, advance in lockstep: every iteration,
+each run's ``ask()`` is stacked into one batched ``task.evaluate`` call (tasks are
+batch-independent, and every row gets its own random start from the task's start
+distribution), and the returns are split back for ``tell()``.
+
+After every tell we record, per run,
+
+* **best policy**: the highest return of the batch just evaluated (one sample per policy;
+  the initial batch holds ``n0`` draws from N(θ0, Σ_start)),
+* **average policy**: the mean return of that batch,
+
+as step functions of the number of trials (one trial = one episode), sampled on a common grid.
+PoWER evaluates one policy per iteration, so its two curves coincide (as in the paper).
+
+Tasks, trial budgets and ``n0`` come from ``configs/task/{cartpole,mountain_car}.yaml``; both
+algorithms get the same θ0, Σ_start, n0, M = 5 and reward_range (the paper's "same parameters
+as PoWER"). PoWER keeps Σ_start throughout (the paper's manual covariance reduction at
+convergence is not reproduced: there is no principled moment to do it).
+
+Writes ``docs/figures/figure1_cartpole.png``, ``figure1_mountain_car.png`` and
+``figure1.json`` (trials grid, means, stds, final values). Run::
+
+    python benchmarks/reproduce_figure1.py            # 50 runs, both tasks
+    python benchmarks/reproduce_figure1.py --runs 5   # quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from hydra.utils import instantiate  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from dipole_torch import Dipole, Power  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TASKS = {"cartpole": "Cart-pole", "mountain_car": "Mountain car"}
+ALGORITHMS = {"DIPOLE": Dipole, "PoWER": Power}
+COLORS = {"DIPOLE": "tab:blue", "PoWER": "tab:red"}
+
+
+def load_task(name: str, compile: bool = False):
+    """The task, trial budget and n0 of ``configs/task/<name>.yaml`` (on CPU)."""
+    config = OmegaConf.load(ROOT / "configs" / "task" / f"{name}.yaml")
+    config = OmegaConf.merge({"device": "cpu"}, {"task": config})
+    task = instantiate(config.task.env, compile=compile)
+    return task, int(config.task.trials), int(config.task.n0)
+
+
+def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
+    """One job: runs ``seeds`` of ``algo`` on task ``name`` in lockstep.
+
+    Returns the job and, per run, an array of rows ``[trials, best, average]``.
+    """
+    name, algo, seeds, trials, compile, episode_seed = job
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    task, _, n0 = load_task(name, compile)
+    algorithm = ALGORITHMS[algo]
+    runs = len(seeds)
+    optimizers = [
+        algorithm(
+            task.theta0,
+            task.sigma_start,
+            n0=n0,
+            reward_range=task.reward_range,
+            generator=torch.Generator().manual_seed(seed),
+        )
+        for seed in seeds
+    ]
+    episodes = torch.Generator().manual_seed(episode_seed)  # every episode's random start
+    history: list[list[tuple[int, float, float]]] = [[] for _ in range(runs)]
+    while True:
+        active = [i for i, opt in enumerate(optimizers) if opt.trials < trials]
+        if not active:
+            break
+        asked = [optimizers[i].ask() for i in active]
+        rewards = task.evaluate(torch.cat(asked), episodes).split([len(a) for a in asked])
+        for i, theta, r in zip(active, asked, rewards, strict=True):
+            optimizers[i].tell(theta, r)
+            last = optimizers[i].last_rewards
+            history[i].append((optimizers[i].trials, float(last.max()), float(last.mean())))
+    return job, [np.array(h) for h in history], time.perf_counter() - start
+
+
+def on_grid(history: list[np.ndarray], grid: np.ndarray) -> np.ndarray:
+    """``[runs, 2, G]``: best and average of the latest batch told at or before each trial."""
+    out = np.full((len(history), 2, len(grid)), np.nan)
+    for run, h in enumerate(history):
+        index = np.searchsorted(h[:, 0], grid, side="right") - 1
+        valid = index >= 0
+        out[run, :, valid] = h[index[valid], 1:]
+    return out
+
+
+def plot(name: str, grid: np.ndarray, curves: dict, runs: int, path: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for ax, which, title in ((axes[0], 0, "best policy"), (axes[1], 1, "average of policies")):
+        for algo, values in curves.items():
+            mean, std = values[:, which].mean(0), values[:, which].std(0)
+            ax.plot(grid, mean, color=COLORS[algo], label=algo)
+            ax.fill_between(grid, mean - std, mean + std, color=COLORS[algo], alpha=0.2)
+        ax.set_title(f"{TASKS[name]}: {title}")
+        ax.set_xlabel("trials")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(f"reward (mean ± std over {runs} runs)")
+    axes[0].legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=50)
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
+    parser.add_argument("--grid-step", type=int, default=10, help="trials between grid points")
+    parser.add_argument("--workers", type=int, default=2, help="processes (one per core)")
+    parser.add_argument("--chunks", type=int, default=2, help="jobs per task and algorithm")
+    parser.add_argument(
+        "--compile", action="store_true", help="torch.compile the rollouts (pays ~1 min once)"
+    )
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    json_path = args.out / "figure1.json"
+    summary = json.loads(json_path.read_text()) if json_path.exists() else {}
+    budgets = {name: load_task(name)[1:] for name in args.tasks}
+    jobs = [
+        (name, algo, seeds.tolist(), budgets[name][0], args.compile, 1000 + 100 * t + 10 * a + c)
+        for t, name in enumerate(args.tasks)
+        for a, algo in enumerate(ALGORITHMS)
+        for c, seeds in enumerate(np.array_split(np.arange(args.runs), args.chunks))
+    ]
+    histories: dict = {(name, algo): {} for name in args.tasks for algo in ALGORITHMS}
+    seconds: dict = {(name, algo): 0.0 for name in args.tasks for algo in ALGORITHMS}
+    start = time.perf_counter()
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        for job, history, elapsed in pool.imap_unordered(learn, jobs):
+            name, algo, seeds = job[:3]
+            histories[name, algo].update(zip(seeds, history, strict=True))
+            seconds[name, algo] += elapsed
+            print(f"  {name} {algo} runs {seeds[0]}-{seeds[-1]}: {elapsed:.0f} s", flush=True)
+    for name in args.tasks:
+        trials, n0 = budgets[name]
+        grid = np.arange(args.grid_step, trials + 1, args.grid_step)
+        curves = {
+            algo: on_grid([histories[name, algo][s] for s in range(args.runs)], grid)
+            for algo in ALGORITHMS
+        }
+        for algo, values in curves.items():
+            final = values[:, :, -1]
+            print(
+                f"{name:>12} {algo:>6}: final best {final[:, 0].mean():8.1f} ± "
+                f"{final[:, 0].std():6.1f}, average {final[:, 1].mean():8.1f} ± "
+                f"{final[:, 1].std():6.1f}"
+            )
+        plot(name, grid, curves, args.runs, args.out / f"figure1_{name}.png")
+        task = load_task(name)[0]
+        summary[name] = {
+            "runs": args.runs,
+            "trials": trials,
+            "n0": n0,
+            "reward_range": list(task.reward_range),
+            "cpu_seconds": {algo: round(seconds[name, algo], 1) for algo in ALGORITHMS},
+            "trials_grid": grid.tolist(),
+            **{
+                algo: {
+                    f"{kind}_{stat}": getattr(np, stat)(values[:, k], axis=0).round(3).tolist()
+                    for k, kind in enumerate(("best", "average"))
+                    for stat in ("mean", "std")
+                }
+                | {
+                    f"final_{kind}": {
+                        "mean": float(values[:, k, -1].mean()),
+                        "std": float(values[:, k, -1].std()),
+                    }
+                    for k, kind in enumerate(("best", "average"))
+                }
+                for algo, values in curves.items()
+            },
+        }
+    json_path.write_text(json.dumps(summary, indent=1))
+    print(f"wrote {args.out}/figure1_*.png and {json_path} in {time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
