@@ -94,6 +94,7 @@ class DSGMR:
         covariance[0, 0] = self.time_std**2
         self._covariances = covariance.expand(num_attractors, 1 + dim, 1 + dim)
         self._weights = torch.full((num_attractors,), 1.0 / num_attractors, **factory)
+        self._activations: Tensor | None = None  # h_i(t) [T+1, K], computed on first use
 
     @property
     def parameter_dim(self) -> int:
@@ -121,17 +122,19 @@ class DSGMR:
         )
 
     def attractor_path(self, theta: Tensor) -> Tensor:
-        """GMR attractor x̂(t) ``[B, T+1, dim]`` on the time grid :attr:`times`."""
-        mixture = self.gmm(theta)
-        batch, k, event = mixture.means.shape
-        # Batch shape [B, 1] broadcasts against the T+1 observed times: result [B, T+1].
-        batched = GaussianMixture(
-            mixture.weights.expand(batch, 1, k),
-            mixture.means.unsqueeze(-3),
-            mixture.covariances.expand(batch, 1, k, event, event),
-            validate_args=False,
-        )
-        return batched.condition([0], self.times.to(theta.dtype).unsqueeze(-1)).mean
+        """GMR attractor x̂(t) ``[B, T+1, dim]`` on the time grid :attr:`times`.
+
+        Without t–x coupling, GMR's mean is ``Σ_i h_i(t) μ_i^x`` with the responsibilities
+        ``h_i(t)`` of the time marginal, which do not depend on θ: they are computed once
+        (:meth:`GaussianMixture.responsibilities`) and the path is one matrix product.
+        """
+        centres = self._centres(theta)
+        if self._activations is None or self._activations.dtype != theta.dtype:
+            time_marginal = self.gmm(torch.zeros_like(theta[:1])).marginal([0])
+            self._activations = time_marginal.responsibilities(
+                self.times.to(theta.dtype).unsqueeze(-1).unsqueeze(-1)
+            )[:, 0]  # [T+1, K]
+        return self._activations @ centres
 
     def rollout(self, theta: Tensor, start: Tensor) -> Tensor:
         """Tip positions ``[B, T+1, dim]`` of the spring-damper, from rest at ``start: [dim]``."""
