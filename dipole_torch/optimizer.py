@@ -167,7 +167,13 @@ class PolicySearch:
 
     # ------------------------------------------------------------------ the PoWER step
     def _power_step(self) -> None:
-        """Eq. 7 for every policy on its best M samples; drop samples in no importance set."""
+        """Keep the best K·M samples overall, then eq. 7 for every policy on its best M."""
+        # "keeping a fixed number of elements K·M at every iteration": a policy whose samples
+        # all fall out of the best K·M owns no data at the next clustering and disappears.
+        overall = torch.zeros_like(self.rewards, dtype=torch.bool)
+        top = min(self.num_policies * self.M, self.rewards.numel())
+        overall[torch.topk(self.rewards, top).indices] = True
+        self._keep(overall)
         keep, index, valid = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
         weights = self.reward_scale(self.rewards)
         slot_weights = torch.where(valid, weights[index.clamp_min(0)], torch.zeros((), dtype=DTYPE))
@@ -232,11 +238,15 @@ class PolicySearch:
 
 
 class Power(PolicySearch):
-    """PoWER, the paper's baseline: one policy, fixed exploration covariance Σ_start.
+    """PoWER, the paper's baseline: one policy with exploration covariance Σ_start.
 
     Algorithm 3: ``n0`` initial samples (default M) from N(θ0, Σ_start), then one sample
     per iteration; after each, θ moves by eq. 7 towards the reward-weighted average of the
     best M samples so far.
+
+    The paper "manually reduced" PoWER's exploration covariance once cart-pole converged;
+    ``exploration_decay`` < 1 is a reproducible stand-in: after iteration t the covariance is
+    Σ_start · max(decay^t, min_exploration). The default 1.0 keeps Σ_start fixed.
 
     Args:
         theta0: ``[D]`` initial policy θ^(0).
@@ -245,8 +255,36 @@ class Power(PolicySearch):
         n0: initial samples (default M).
         reward_range: ``(low, high)`` of the returns, mapped to weights in [floor, 1] by
             :class:`dipole_torch.RewardScale`; ``None`` if returns are already positive.
+        reward_floor: smallest reward weight.
+        exploration_decay: per-iteration factor on the covariance, in (0, 1].
+        min_exploration: floor of that factor, in (0, 1].
         generator: ``torch.Generator`` for every draw.
     """
+
+    def __init__(
+        self,
+        theta0: Tensor,
+        sigma_start: Tensor,
+        M: int = 5,
+        n0: int | None = None,
+        reward_range: tuple[float, float] | None = None,
+        reward_floor: float = 1e-3,
+        exploration_decay: float = 1.0,
+        min_exploration: float = 1e-2,
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__(theta0, sigma_start, M, n0, reward_range, reward_floor, generator)
+        if not 0.0 < exploration_decay <= 1.0:
+            raise ValueError(f"exploration_decay must lie in (0, 1], got {exploration_decay}")
+        if not 0.0 < min_exploration <= 1.0:
+            raise ValueError(f"min_exploration must lie in (0, 1], got {min_exploration}")
+        self.exploration_decay = float(exploration_decay)
+        self.min_exploration = float(min_exploration)
+
+    def _after_iteration(self) -> None:
+        if self.exploration_decay < 1.0:
+            factor = max(self.exploration_decay**self.iteration, self.min_exploration)
+            self.policy_covariances = factor * self.sigma_start[None]
 
 
 class Dipole(PolicySearch):
@@ -254,10 +292,11 @@ class Dipole(PolicySearch):
 
     * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per policy, from
       the θ-block of its component covariance (the automatic exploration adaptation).
-    * ``tell()``: a PoWER step (eq. 7) per policy on its best M samples, keeping K·M samples
-      overall; after the initial batch and every ``cluster_every`` iterations, a weighted DP
-      clustering (eq. 6, Neal's Algorithm 8) of the kept samples, augmented with their reward
-      weights y = [θ, w], redefines the policies.
+    * ``tell()``: the best K·M samples are kept overall, then a PoWER step (eq. 7) per policy
+      on its best M of them (a policy left without samples keeps its mean, and disappears at
+      the next clustering); after the initial batch and every ``cluster_every`` iterations,
+      a weighted DP clustering (eq. 6, Neal's Algorithm 8) of the kept samples, augmented
+      with their reward weights y = [θ, w], redefines the policies.
 
     Args:
         theta0: ``[D]`` initial policy.
