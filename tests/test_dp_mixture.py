@@ -86,7 +86,7 @@ def test_eq6_reward_weights_scale_label_probabilities():
     test point sits at θ = 0 with w = 0.5, where both densities are equal by symmetry. Eq. 6
     gives P(A) = 0.8 / (0.8 + 0.2) = 0.8; eq. 5 (unweighted) gives 0.5.
     """
-    n = 20
+    n = 10
     centres = torch.tensor([[-2.0, 0.0, 0.8], [2.0, 0.0, 0.2]], dtype=F64)
     y = torch.cat((centres.repeat_interleave(n, 0), torch.tensor([[0.0, 0.0, 0.5]], dtype=F64)))
     cov = torch.diag(torch.tensor([1.0, 1.0, 0.3], dtype=F64))
@@ -97,13 +97,14 @@ def test_eq6_reward_weights_scale_label_probabilities():
     def frequency_of_a(weighted):
         hits = 0
         g = torch.Generator().manual_seed(0)
-        for _ in range(300):
+        for _ in range(200):
             out = neal8_sweep(y, state, alpha=1e-12, m=1, reward_weighted=weighted, generator=g)
             hits += int(out.labels[-1] == out.labels[0])
-        return hits / 300
+        return hits / 200
 
-    assert abs(frequency_of_a(True) - 0.8) < 0.07
-    assert abs(frequency_of_a(False) - 0.5) < 0.09
+    # Binomial standard errors over 200 draws: 0.028 and 0.035; thresholds at ~2.8 of them.
+    assert abs(frequency_of_a(True) - 0.8) < 0.08
+    assert abs(frequency_of_a(False) - 0.5) < 0.1
 
 
 def test_sweep_is_reproducible_from_the_generator():

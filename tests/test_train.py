@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,17 +86,39 @@ def test_multirun_over_seeds(tmp_path):
     assert seeds == [0, 1]
 
 
+def test_unknown_task_on_the_command_line(tmp_path):
+    result = train("task=no_such_task", f"hydra.run.dir={tmp_path}", check=False)
+    assert result.returncode != 0
+    assert "Could not find 'task/no_such_task'" in result.stderr + result.stdout
+    assert "multimodal" in result.stderr + result.stdout  # Hydra lists the available tasks
+
+
+def compose_config(*overrides):
+    with initialize_config_dir(str(ROOT / "configs"), version_base=None):
+        return compose("config", overrides=list(overrides))
+
+
 @pytest.mark.parametrize(
     "override, message",
     [
-        ("task=no_such_task", "Could not find 'task/no_such_task'"),
-        ("algo=cmaes", "Could not find 'algo/cmaes'"),
         ("trials=-5", "trials (the trial budget) must be a positive integer"),
+        ("trials=0", "trials (the trial budget) must be a positive integer"),
         ("device=tpu", "device must be 'cpu' or 'cuda"),
-        ("algo.optimizer.alpha=-1", "alpha (DP concentration) must be positive"),
+        ("threads=0", "threads must be a positive integer"),
+        ("task.n0=0", "task.n0 (initial samples) must be a positive integer"),
     ],
 )
-def test_bad_config_gives_a_clear_error(override, message, tmp_path):
-    result = train(override, f"hydra.run.dir={tmp_path}", check=False)
-    assert result.returncode != 0
-    assert message in result.stderr + result.stdout
+def test_bad_config_values_give_a_clear_error(override, message):
+    from train import check_config
+
+    with pytest.raises(ValueError) as error:
+        check_config(compose_config(override))
+    assert message in str(error.value)
+
+
+def test_unknown_algo_and_bad_algo_parameters():
+    with pytest.raises(Exception, match="Could not find 'algo/cmaes'"):
+        compose_config("algo=cmaes")
+    cfg = compose_config("algo.optimizer.alpha=-1")
+    with pytest.raises(Exception, match=r"alpha \(DP concentration\) must be positive"):
+        instantiate(cfg.algo.optimizer, theta0=torch.zeros(2), sigma_start=torch.eye(2))

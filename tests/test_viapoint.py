@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ import torch
 from tasks.viapoint import ViapointTask
 
 F64 = torch.float64
+SEED = 3  # a seed of benchmarks/reproduce_viapoint.py
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "task" / "viapoint.yaml"
 
 
@@ -47,7 +49,8 @@ def test_spaces_and_straight_line_start(task):
     path = task.trajectory(task.theta0[None])[0]
     assert float((path[-1] - task.target).norm()) < 2e-3
     reward = float(task.evaluate(task.theta0[None])[0])
-    assert reward == pytest.approx(0.61, abs=0.01)  # 10 cm from every alternative
+    expected = math.exp(-task.reward_alpha * 0.1)  # 10 cm from every alternative
+    assert reward == pytest.approx(expected, abs=0.01)
 
 
 def test_reward_of_constructed_path_through_a_route(task):
@@ -56,10 +59,9 @@ def test_reward_of_constructed_path_through_a_route(task):
         path[0, index] = task.viapoints[i, 1] + 1e-3  # ~1.7 mm off
     assert float(task.reward(path)[0]) >= 0.99
     path[0, task.pass_indices[0]] = task.viapoints[0, 0] + torch.tensor([0.0, 0.0, 0.05])
-    expected = (
-        2 * torch.exp(torch.tensor(-5.0 * 3**0.5 * 1e-3)) + torch.exp(torch.tensor(-0.25))
-    ) / 3
-    assert float(task.reward(path)[0]) == pytest.approx(float(expected), rel=1e-6)
+    alpha = task.reward_alpha
+    expected = (2 * math.exp(-alpha * 3**0.5 * 1e-3) + math.exp(-alpha * 0.05)) / 3
+    assert float(task.reward(path)[0]) == pytest.approx(expected, rel=1e-6)
 
 
 def test_every_route_is_reachable_and_recognised(task):
@@ -165,6 +167,60 @@ def test_bad_inputs_raise(task):
         ViapointTask(reward_alpha=0.0)
     with pytest.raises(ValueError, match="workspace"):
         ViapointTask(start=[1.5, 0.0, 0.0])
+
+
+def test_dh_kinematics_match_the_urdf_chain(task):
+    q = task.kinematics.clamp_to_limits(
+        torch.randn(16, 7, generator=torch.Generator().manual_seed(1), dtype=F64)
+    )
+    position, jacobian = task.kinematics.position_and_jacobian(q)
+    reference, pose = task.kinematics.chain.jacobian(q, ret_eef_pose=True)
+    torch.testing.assert_close(position, pose[:, :3, 3], atol=1e-7, rtol=0)
+    torch.testing.assert_close(jacobian, reference[:, :3], atol=1e-7, rtol=0)
+
+
+def test_describe_and_plot_policies(task):
+    matplotlib = pytest.importorskip("matplotlib")
+    thetas, routes = route_policies(task)
+    lines = task.describe_policies(thetas[[0, 3]])
+    assert lines[0].startswith("route (0, 0, 0): below / near / below, return 0.99")
+    assert lines[1].startswith("route (0, 1, 1): below / far / above, return")
+    assert lines[1].endswith(" cm")
+    figure = task.plot_policies(torch.cat([thetas[:3], task.theta0[None]]))
+    assert isinstance(figure, matplotlib.figure.Figure)
+    ax = figure.axes[0]
+    assert len(ax.lines) == 4 and ax.get_xlabel() == "x [m]"
+    texts = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "start" in texts and "target" in texts and any("below / near" in t for t in texts)
+    figure.canvas.draw()  # renders on Agg, no display
+    matplotlib.pyplot.close(figure)
+    with pytest.raises(ValueError, match="labels"):
+        task.plot_policies(thetas[:2], labels=["one"])
+
+
+def test_dipole_finds_several_routes():
+    """Paper's settings (α = 1, m = 10, M = 5, n0 = 30, 300 trials) on a fixed seed: at least
+    two final policy means, evaluated without noise, take distinct routes with reward ≥ 0.9."""
+    from dipole_torch import Dipole
+
+    torch.set_num_threads(1)
+    task = ViapointTask()
+    opt = Dipole(
+        task.theta0.double(),
+        task.sigma_start.double(),
+        n0=30,
+        reward_range=task.reward_range,
+        generator=torch.Generator().manual_seed(SEED),
+    )
+    while opt.trials < 300:
+        theta = opt.ask()
+        rewards = task.evaluate(theta.float())
+        assert bool(((rewards >= 0) & (rewards <= 1)).all())
+        opt.tell(theta, rewards)
+    means = opt.policy_means.float()
+    rewards = task.evaluate(means)
+    routes = {tuple(r) for r, v in zip(task.route(means).tolist(), rewards.tolist()) if v >= 0.9}
+    assert len(routes) >= 2, (rewards, task.route(means))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
