@@ -2,19 +2,24 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 
 import torch
 from torch import Tensor
 
-from tasks.base import EpisodicTask
+from tasks.control import (
+    ControlTask,
+    check_positive_int,
+    compiled,
+    single_threaded,
+    start_distribution,
+)
 
 __all__ = ["CartPoleTask"]
 
 
-class CartPoleTask(EpisodicTask):
+class CartPoleTask(ControlTask):
     r"""Balance a pole on a cart for ``steps`` time steps with the linear policy ``u = θᵀx``.
 
     ## Description
@@ -144,10 +149,7 @@ class CartPoleTask(EpisodicTask):
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-            raise ValueError(f"steps must be a positive integer, got {steps!r}")
-        if not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1:
-            raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+        check_positive_int(steps=steps, chunk=chunk)
         if not (math.isfinite(force_limit) and force_limit > 0):
             raise ValueError(f"force_limit must be a positive finite number, got {force_limit!r}")
         if not (math.isfinite(initial_angle) and 0 <= initial_angle < self.angle_threshold):
@@ -164,7 +166,7 @@ class CartPoleTask(EpisodicTask):
         self.device = torch.device(device)
         self.dtype = dtype
         self.reward_range = (-float(steps), float(steps))
-        self.theta0, self.sigma_start = _start_distribution(
+        self.theta0, self.sigma_start = start_distribution(
             theta0, exploration_std, self.state_dim, self.device, dtype
         )
 
@@ -259,7 +261,7 @@ class CartPoleTask(EpisodicTask):
             alive_steps = torch.zeros_like(x)  # steps before the failing one
             advance = self._advance_
             if self.compile:
-                advance = functools.partial(_compiled(CartPoleTask._advance_), self)
+                advance = functools.partial(compiled(CartPoleTask._advance_), self)
             for start in range(0, self.steps, self.chunk):
                 if not alive.any():
                     break  # every episode has failed: the remaining steps are all -1
@@ -308,85 +310,3 @@ class CartPoleTask(EpisodicTask):
             alive_steps.add_(alive)
             upright_steps.add_(alive & (angle_magnitude < self.upright_angle))
         return x, x_dot, angle, angle_dot, alive, upright_steps, alive_steps
-
-    def _initial_states(
-        self, batch_size: int, generator: torch.Generator | None, initial_state: Tensor | None
-    ) -> Tensor:
-        if initial_state is not None:
-            return _check_initial_state(
-                initial_state, batch_size, self.state_dim, self.device, self.dtype
-            )
-        if generator is None:
-            default = torch.Generator().manual_seed(self.default_seed)
-            return self.sample_initial_state(1, default).expand(batch_size, -1).clone()
-        return self.sample_initial_state(batch_size, generator)
-
-
-_COMPILED: dict = {}
-
-
-def _compiled(function):
-    """``torch.compile(function, dynamic=True)``, built once per function."""
-    if function not in _COMPILED:
-        _COMPILED[function] = torch.compile(function, dynamic=True)
-    return _COMPILED[function]
-
-
-@contextlib.contextmanager
-def single_threaded(device: torch.device, batch_size: int, below: int = 200_000):
-    """Run a CPU rollout of fewer than ``below`` episodes on one intra-op thread.
-
-    Each step is a few dozen element-wise ops on ``[B]`` tensors: with ``B`` up to ~10⁵,
-    OpenMP's fork/join costs more than it saves, and it collapses when another process
-    shares the cores (measured at ``B = 10⁴`` on 2 cores: 1 thread ~0.2 s for 1000 steps,
-    2 threads 1-16 s). The previous thread count is restored afterwards.
-    """
-    previous = torch.get_num_threads()
-    switch = device.type == "cpu" and batch_size < below and previous != 1
-    if switch:
-        torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        if switch:
-            torch.set_num_threads(previous)
-
-
-def _start_distribution(
-    theta0: Tensor | list[float] | None,
-    exploration_std: float | list[float] | Tensor,
-    dim: int,
-    device: torch.device,
-    dtype: torch.dtype,
-) -> tuple[Tensor, Tensor]:
-    """Check ``theta0`` and ``exploration_std``; return ``theta0 [D]``, ``sigma_start [D, D]``."""
-    if theta0 is None:
-        theta0 = torch.zeros(dim)
-    theta0 = torch.as_tensor(theta0, dtype=torch.float64)
-    if theta0.shape != (dim,) or not torch.isfinite(theta0).all():
-        raise ValueError(f"theta0 must be {dim} finite numbers, got {theta0.tolist()!r}")
-    std = torch.as_tensor(exploration_std, dtype=torch.float64)
-    std = std.expand(dim) if std.dim() == 0 else std
-    if std.shape != (dim,) or not (torch.isfinite(std).all() and (std > 0).all()):
-        raise ValueError(
-            f"exploration_std must be a positive number or {dim} positive numbers, "
-            f"got {std.tolist()!r}"
-        )
-    return theta0.to(device, dtype), torch.diag(std.square()).to(device, dtype)
-
-
-def _check_initial_state(
-    initial_state: Tensor, batch_size: int, dim: int, device: torch.device, dtype: torch.dtype
-) -> Tensor:
-    """Validate ``initial_state: [S]`` or ``[B, S]`` and return it as ``[B, S]``."""
-    initial_state = torch.as_tensor(initial_state)
-    if initial_state.dim() == 1:
-        initial_state = initial_state.unsqueeze(0).expand(batch_size, -1)
-    if initial_state.shape != (batch_size, dim):
-        raise ValueError(
-            f"initial_state must have shape [{dim}] or [{batch_size}, {dim}], "
-            f"got {list(initial_state.shape)}"
-        )
-    if not torch.isfinite(initial_state).all():
-        raise ValueError("initial_state contains non-finite values (NaN or inf)")
-    return initial_state.to(device=device, dtype=dtype).clone()

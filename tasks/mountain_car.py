@@ -8,13 +8,18 @@ import math
 import torch
 from torch import Tensor
 
-from tasks.base import EpisodicTask
-from tasks.cartpole import _check_initial_state, _compiled, _start_distribution, single_threaded
+from tasks.control import (
+    ControlTask,
+    check_positive_int,
+    compiled,
+    single_threaded,
+    start_distribution,
+)
 
 __all__ = ["MountainCarTask"]
 
 
-class MountainCarTask(EpisodicTask):
+class MountainCarTask(ControlTask):
     r"""Drive an under-powered car out of a valley within ``steps`` steps.
 
     ## Description
@@ -131,10 +136,7 @@ class MountainCarTask(EpisodicTask):
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-            raise ValueError(f"steps must be a positive integer, got {steps!r}")
-        if not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1:
-            raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+        check_positive_int(steps=steps, chunk=chunk)
         if not (math.isfinite(goal_position) and -0.4 < goal_position < self.max_position):
             raise ValueError(
                 f"goal_position must be in (-0.4, {self.max_position}), beyond every start, "
@@ -153,7 +155,7 @@ class MountainCarTask(EpisodicTask):
         self.device = torch.device(device)
         self.dtype = dtype
         self.reward_range = (0.0, float(steps))
-        self.theta0, self.sigma_start = _start_distribution(
+        self.theta0, self.sigma_start = start_distribution(
             theta0, exploration_std, 4, self.device, dtype
         )
 
@@ -231,7 +233,7 @@ class MountainCarTask(EpisodicTask):
             open_steps = torch.zeros_like(x)  # steps that ended away from the goal
             advance = self._advance_
             if self.compile:
-                advance = functools.partial(_compiled(MountainCarTask._advance_), self)
+                advance = functools.partial(compiled(MountainCarTask._advance_), self)
             for start in range(0, self.steps, self.chunk):
                 if done.all():
                     break  # every car is at the goal
@@ -272,15 +274,3 @@ class MountainCarTask(EpisodicTask):
             done.logical_or_(x >= self.goal_position)
             open_steps.add_(~done)
         return x, velocity, done, open_steps
-
-    def _initial_states(
-        self, batch_size: int, generator: torch.Generator | None, initial_state: Tensor | None
-    ) -> Tensor:
-        if initial_state is not None:
-            return _check_initial_state(
-                initial_state, batch_size, self.state_dim, self.device, self.dtype
-            )
-        if generator is None:
-            default = torch.Generator().manual_seed(self.default_seed)
-            return self.sample_initial_state(1, default).expand(batch_size, -1).clone()
-        return self.sample_initial_state(batch_size, generator)
