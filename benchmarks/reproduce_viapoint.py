@@ -1,0 +1,287 @@
+"""Reproduce Figures 2 and 3 of Bruno, Calinon & Caldwell (AAAI 2013): DIPOLE vs PoWER on the
+viapoint task with the simulated Barrett WAM, 10 learning runs per algorithm.
+
+Figure 2: best and average policy reward against trials, mean ± std over the runs. After every
+``tell`` we record, per run,
+
+* **best policy**: ``max(opt.last_rewards)``, the highest return of the batch just evaluated
+  (one exploratory sample per policy; the initial batch holds ``n0`` draws from
+  N(θ0, Σ_start)),
+* **average policy**: ``mean(opt.last_rewards)``,
+
+as step functions of the number of trials, sampled on a common grid of trials. PoWER evaluates
+one policy per iteration, so its two curves coincide (as in the paper).
+
+Figure 3: the distinct routes found over all DIPOLE runs, one end-effector path per route (the
+final policy mean of highest reward that takes it), with the viapoints, start and target.
+
+**Routes found** (the paper's "2.5 different policies per run"): a route is the alternative
+viapoint nearest to the arm's path at each pass time (:meth:`ViapointTask.route`). A run
+*finds* a route when one of its **final policy means**, evaluated without exploration noise,
+takes it with reward ≥ 0.9 (``--threshold``). A second, looser count is also reported: the
+routes of the samples in the final policies' importance sets (the best M = 5 samples of each
+policy, all evaluated with exploration noise) whose reward is ≥ 0.9.
+
+Both algorithms get the task's θ0, Σ_start, n0 = 30, M = 5 and reward range (the paper's "same
+parameters as PoWER"); DIPOLE uses the paper's α = 1, m = 10 (``configs/algo/dipole.yaml``
+defaults); PoWER keeps Σ_start throughout (``configs/algo/power.yaml``). The task comes from
+``configs/task/viapoint.yaml``. Runs of one algorithm advance in lockstep: every iteration,
+their ``ask()`` batches are stacked into one ``task.evaluate`` call (the task is deterministic
+and batch-independent). Writes ``docs/figures/figure2_viapoint.png``,
+``docs/figures/figure3_routes.png`` and ``docs/figures/viapoint.json``::
+
+    python benchmarks/reproduce_viapoint.py            # 10 runs per algorithm, ~3 min on 2 cores
+    python benchmarks/reproduce_viapoint.py --runs 2   # quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from hydra.utils import instantiate  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from dipole_torch import Dipole, Power  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+ALGORITHMS = {"DIPOLE": "dipole", "PoWER": "power"}
+COLORS = {"DIPOLE": "tab:blue", "PoWER": "tab:red"}
+
+
+def load_task():
+    """The viapoint task (CPU), trial budget and n0 of ``configs/task/viapoint.yaml``."""
+    config = OmegaConf.load(ROOT / "configs" / "task" / "viapoint.yaml")
+    config = OmegaConf.merge({"device": "cpu"}, {"task": config})
+    return instantiate(config.task.env), int(config.task.trials), int(config.task.n0)
+
+
+def make_optimizer(algo: str, task, n0: int, seed: int):
+    """The optimizer of ``configs/algo/<algo>.yaml`` (its defaults: α = 1, m = 10, M = 5)."""
+    config = OmegaConf.load(ROOT / "configs" / "algo" / f"{ALGORITHMS[algo]}.yaml")
+    optimizer = instantiate(
+        config.optimizer,
+        theta0=task.theta0.double(),
+        sigma_start=task.sigma_start.double(),
+        n0=n0,
+        reward_range=tuple(task.reward_range),
+        generator=torch.Generator().manual_seed(seed),
+    )
+    assert isinstance(optimizer, Dipole if algo == "DIPOLE" else Power)
+    return optimizer
+
+
+def learn(job: tuple) -> tuple[tuple, list[dict], float]:
+    """Runs ``seeds`` of ``algo`` in lockstep; per run its history and final policies."""
+    algo, seeds, threshold = job
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    task, trials, n0 = load_task()
+    optimizers = [make_optimizer(algo, task, n0, seed) for seed in seeds]
+    history: list[list[tuple[int, float, float, int]]] = [[] for _ in seeds]
+    while True:
+        active = [i for i, opt in enumerate(optimizers) if opt.trials < trials]
+        if not active:
+            break
+        asked = [optimizers[i].ask() for i in active]
+        rewards = task.evaluate(torch.cat(asked).to(task.dtype)).double()
+        for i, theta, r in zip(active, asked, rewards.split([len(a) for a in asked]), strict=True):
+            opt = optimizers[i]
+            opt.tell(theta, r)
+            last = opt.last_rewards
+            history[i].append((opt.trials, float(last.max()), float(last.mean()), opt.num_policies))
+    runs = []
+    for seed, opt, h in zip(seeds, optimizers, history, strict=True):
+        means = opt.policy_means.to(task.dtype)
+        mean_rewards = task.evaluate(means).double()
+        mean_routes = task.route(means).tolist()
+        kept_routes = task.route(opt.thetas.to(task.dtype)).tolist()
+        kept_rewards = opt.rewards.tolist()
+        routes = {
+            tuple(route): float(r)
+            for route, r in sorted(
+                zip(mean_routes, mean_rewards.tolist(), strict=True), key=lambda x: x[1]
+            )
+            if r >= threshold
+        }
+        sample_routes = {
+            tuple(route)
+            for route, r in zip(kept_routes, kept_rewards, strict=True)
+            if r >= threshold
+        }
+        runs.append(
+            {
+                "seed": seed,
+                "history": np.array(h),
+                "policy_means": means.double().tolist(),
+                "policy_rewards": mean_rewards.tolist(),
+                "policy_routes": mean_routes,
+                "routes_found": {str(route): r for route, r in sorted(routes.items())},
+                "routes_in_samples": sorted(str(route) for route in sample_routes),
+                "best_reward_so_far": opt.best()[1],
+            }
+        )
+    return job, runs, time.perf_counter() - start
+
+
+def on_grid(history: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """``[2, G]``: best and average of the latest batch told at or before each grid trial."""
+    out = np.full((2, len(grid)), np.nan)
+    index = np.searchsorted(history[:, 0], grid, side="right") - 1
+    valid = index >= 0
+    out[:, valid] = history[index[valid], 1:3].T
+    return out
+
+
+def plot_curves(grid: np.ndarray, curves: dict, runs: int, path: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for ax, which, title in ((axes[0], 0, "best policy"), (axes[1], 1, "average of policies")):
+        for algo, values in curves.items():
+            mean, std = np.nanmean(values[:, which], 0), np.nanstd(values[:, which], 0)
+            ax.plot(grid, mean, color=COLORS[algo], label=algo)
+            ax.fill_between(grid, mean - std, mean + std, color=COLORS[algo], alpha=0.2)
+        ax.set_title(f"Viapoint task: {title}")
+        ax.set_xlabel("trials (reward evaluations)")
+        ax.set_ylim(0.0, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(f"reward, eq. 9 (mean ± std, {runs} runs)")
+    axes[0].legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=10)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
+    parser.add_argument("--grid-step", type=int, default=5, help="trials between grid points")
+    parser.add_argument("--workers", type=int, default=2, help="processes (one per core)")
+    parser.add_argument("--threshold", type=float, default=0.9, help="reward of a found route")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    task, trials, n0 = load_task()
+    chunks = max(1, args.workers)
+    jobs = [
+        (algo, seeds.tolist(), args.threshold)
+        for algo in ALGORITHMS
+        for seeds in np.array_split(np.arange(args.runs), chunks)
+        if len(seeds)
+    ]
+    start = time.perf_counter()
+    results: dict[str, list[dict]] = {algo: [] for algo in ALGORITHMS}
+    seconds = dict.fromkeys(ALGORITHMS, 0.0)
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        for (algo, seeds, _), runs, elapsed in pool.imap_unordered(learn, jobs):
+            results[algo].extend(runs)
+            seconds[algo] += elapsed
+            print(f"{algo} seeds {seeds[0]}..{seeds[-1]}: {elapsed:.0f} s", flush=True)
+    for algo in ALGORITHMS:
+        results[algo].sort(key=lambda run: run["seed"])
+
+    grid = np.arange(n0, trials + 1, args.grid_step)
+    curves = {
+        algo: np.stack([on_grid(run["history"], grid) for run in runs])
+        for algo, runs in results.items()
+    }
+    plot_curves(grid, curves, args.runs, args.out / "figure2_viapoint.png")
+
+    summary: dict = {
+        "description": (
+            "Viapoint task (configs/task/viapoint.yaml), DIPOLE vs PoWER. Curves: per iteration "
+            "best = max and average = mean of the latest batch's returns (opt.last_rewards), "
+            "step-interpolated on the trials grid; mean and std over runs. A route is found "
+            "when a final policy mean (no exploration noise) takes it with reward >= threshold; "
+            "routes_in_samples counts the routes of the final importance-set samples (with "
+            "exploration noise) with reward >= threshold."
+        ),
+        "runs": args.runs,
+        "trials": trials,
+        "n0": n0,
+        "threshold": args.threshold,
+        "num_routes_in_layout": int(np.prod(task.num_alternatives)),
+        "grid": grid.tolist(),
+        "wall_time_s": time.perf_counter() - start,
+        "cpu_seconds": seconds,
+    }
+    best_route_policies: dict[tuple, tuple[float, list[float]]] = {}
+    for algo, runs in results.items():
+        values = curves[algo]
+        found = [len(run["routes_found"]) for run in runs]
+        in_samples = [len(run["routes_in_samples"]) for run in runs]
+        covered = sorted({route for run in runs for route in run["routes_found"]})
+        covered_samples = sorted({route for run in runs for route in run["routes_in_samples"]})
+        summary[algo] = {
+            "best_mean": np.nanmean(values[:, 0], 0).tolist(),
+            "best_std": np.nanstd(values[:, 0], 0).tolist(),
+            "average_mean": np.nanmean(values[:, 1], 0).tolist(),
+            "average_std": np.nanstd(values[:, 1], 0).tolist(),
+            "final_best": [float(np.nanmean(values[:, 0, -1])), float(np.nanstd(values[:, 0, -1]))],
+            "final_average": [
+                float(np.nanmean(values[:, 1, -1])),
+                float(np.nanstd(values[:, 1, -1])),
+            ],
+            "final_best_policy_mean_reward": [
+                float(np.mean([max(run["policy_rewards"]) for run in runs])),
+                float(np.std([max(run["policy_rewards"]) for run in runs])),
+            ],
+            "routes_per_run": [float(np.mean(found)), float(np.std(found))],
+            "routes_covered": covered,
+            "routes_per_run_in_samples": [float(np.mean(in_samples)), float(np.std(in_samples))],
+            "routes_covered_in_samples": covered_samples,
+            "per_run": [
+                {key: value for key, value in run.items() if key != "history"}
+                | {"num_policies_final": int(run["history"][-1, 3])}
+                for run in runs
+            ],
+        }
+        for run in runs:
+            for route, reward, theta in zip(
+                run["policy_routes"], run["policy_rewards"], run["policy_means"], strict=True
+            ):
+                key = (algo, tuple(route))
+                if reward >= args.threshold and reward > best_route_policies.get(key, (-1,))[0]:
+                    best_route_policies[key] = (reward, theta)
+        print(
+            f"{algo}: final best {summary[algo]['final_best'][0]:.3f} ± "
+            f"{summary[algo]['final_best'][1]:.3f}, average {summary[algo]['final_average'][0]:.3f}"
+            f" ± {summary[algo]['final_average'][1]:.3f}; routes per run {np.mean(found):.2f} "
+            f"(samples: {np.mean(in_samples):.2f}); routes covered {len(covered)}/"
+            f"{summary['num_routes_in_layout']} (samples: {len(covered_samples)})"
+        )
+    (args.out / "viapoint.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
+
+    # Figure 3: one path per distinct route found by DIPOLE over all runs.
+    routes = sorted(route for algo, route in best_route_policies if algo == "DIPOLE")
+    if routes:
+        thetas = torch.tensor([best_route_policies[("DIPOLE", r)][1] for r in routes])
+        counts = [
+            sum(str(route) in run["routes_found"] for run in results["DIPOLE"]) for route in routes
+        ]
+        labels = [
+            f"{task.route_name(route)}: r = {best_route_policies[('DIPOLE', route)][0]:.3f}, "
+            f"{count}/{args.runs} runs"
+            for route, count in zip(routes, counts, strict=True)
+        ]
+        figure = task.plot_policies(
+            thetas.to(task.dtype),
+            labels=labels,
+            title=f"Viapoint task: {len(routes)} routes found by DIPOLE in {args.runs} runs",
+        )
+        figure.savefig(args.out / "figure3_routes.png", dpi=120)
+        plt.close(figure)
+    print(f"wrote {args.out}/figure2_viapoint.png, figure3_routes.png, viapoint.json")
+    print(f"total {time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
