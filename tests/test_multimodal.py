@@ -35,7 +35,7 @@ def test_dipole_keeps_several_optima_power_one():
     task = MultimodalTask(dim=2, num_optima=4)
     dipole = [len(distinct_optima(task, learn(Dipole, task, s))) for s in SEEDS]
     power = [len(distinct_optima(task, learn(Power, task, s))) for s in SEEDS]
-    # Measured: DIPOLE [4, 3, 4, 3, 4, 3], PoWER [0, 1, 0, 1, 1, 0] (between optima, its
+    # Measured: DIPOLE [4, 3, 4, 3, 3, 3], PoWER [0, 1, 0, 1, 1, 0] (between optima, its
     # reward-weighted average often stalls). Require >= 2 optima in at least 5 of 6 runs and
     # >= 2.5 on average (margins of one run and of 0.8 optimum per run).
     assert sum(n >= 2 for n in dipole) >= 5, dipole
