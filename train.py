@@ -105,7 +105,8 @@ def main(cfg: DictConfig) -> dict:
     out = Path(HydraConfig.get().runtime.output_dir)
     task = instantiate(cfg.task.env)
     generator = torch.Generator().manual_seed(cfg.seed)  # the optimizer's draws
-    task_generator = torch.Generator(task.device).manual_seed(cfg.seed + 1_000_003)  # episodes
+    # Episodes' random starts: a CPU generator (the tasks draw on the CPU, then move).
+    task_generator = torch.Generator().manual_seed(cfg.seed + 1_000_003)
     optimizer = instantiate(
         cfg.algo.optimizer,
         theta0=task.theta0.double(),

@@ -244,6 +244,10 @@ def resample_parameters(
 
     μ | Σ, y ~ N(m, P⁻¹) with P = Σ0⁻¹ + n Σ⁻¹ and m = P⁻¹ (Σ0⁻¹ μ0 + Σ⁻¹ Σ_i y_i);
     Σ | μ, y ~ IW(ν0 + n, Ψ0 + Σ_i (y_i − μ)(y_i − μ)ᵀ), then Σ ← Σ + regularisation.
+
+    The regularisation is the paper's heuristic "to avoid degeneracies": it is added after the
+    draw, so the Σ step is the exact conditional of the unregularised model, an approximation
+    for the regularised covariance the likelihoods then use.
     """
     prior = state.prior
     counts, sums, outer = _sufficient_statistics(y, state.labels, state.num_components)
@@ -352,7 +356,8 @@ def sequential_labels(
     labels = torch.empty(n, dtype=torch.long, device=y.device)
     uniforms = _uniforms(n, generator, y.device)
     log_alpha = math.log(alpha)
-    order = torch.randperm(n, generator=generator, device=uniforms.device).tolist()
+    where = generator.device if generator is not None else y.device
+    order = torch.randperm(n, generator=generator, device=where).tolist()
     k = 0
     for i in order:
         existing = torch.empty(0, dtype=DTYPE, device=y.device)

@@ -27,7 +27,6 @@ from dipole_torch.dp_mixture import (
     DPMixtureState,
     fit_dp_mixture,
     posterior_point_estimate,
-    reward_weights,
 )
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.power import importance_sets, power_update
@@ -176,7 +175,7 @@ class PolicySearch:
         self._keep(overall)
         keep, index, valid = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
         weights = self.reward_scale(self.rewards)
-        slot_weights = torch.where(valid, weights[index.clamp_min(0)], torch.zeros((), dtype=DTYPE))
+        slot_weights = weights[index.clamp_min(0)] * valid
         samples = self.thetas[index.clamp_min(0)]
         self.policy_means = power_update(self.policy_means, samples, slot_weights)
         self._keep(keep)
@@ -200,10 +199,13 @@ class PolicySearch:
     def policies(self) -> GaussianMixture:
         """The current policies as a mixture over θ: component k is N(θ_k, Σ_k), weighted by
         the number of kept samples it owns."""
-        counts = torch.bincount(self.owner, minlength=self.num_policies).to(DTYPE)
         return GaussianMixture(
-            counts.clamp_min(1.0), self.policy_means, self.policy_covariances, validate_args=False
+            self._policy_weights(), self.policy_means, self.policy_covariances, validate_args=False
         )
+
+    def _policy_weights(self) -> Tensor:
+        """``[K]`` number of kept samples each policy owns (at least 1)."""
+        return torch.bincount(self.owner, minlength=self.num_policies).to(DTYPE).clamp_min(1.0)
 
     # ------------------------------------------------------------------ checkpoints
     _TENSORS = ("thetas", "rewards", "owner", "policy_means", "policy_covariances", "last_rewards")
@@ -398,9 +400,10 @@ class Dipole(PolicySearch):
         w = y[:, -1]
         var_w = float(w.var()) if w.numel() > 1 else 0.0
         mean = torch.cat((self.theta0, w.mean()[None]))
-        cov = torch.block_diag(self.sigma_start, torch.tensor([[max(var_w, 1e-2)]], dtype=DTYPE))
+        reward_variance = torch.tensor([[max(var_w, 1e-2)]], dtype=DTYPE, device=self.device)
+        cov = torch.block_diag(self.sigma_start, reward_variance)
         self.initial_prior = NormalInverseWishartPrior.from_exploration(
-            mean, cov.to(self.device), df=self.prior_df, regularization=self.regularization
+            mean, cov, df=self.prior_df, regularization=self.regularization
         )
         state = fit_dp_mixture(
             y,
@@ -450,7 +453,6 @@ class Dipole(PolicySearch):
         self.owner = state.labels.clone()
         keep, _, _ = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
         self._keep(keep)
-        self.dp_state.labels = self.owner
 
     # ------------------------------------------------------------------ the model
     @property
@@ -468,8 +470,7 @@ class Dipole(PolicySearch):
         means = torch.cat((self.policy_means, self.dp_state.means[:, -1:]), dim=1)
         means[:, -1] = self.reward_scale.inverse(means[:, -1])
         covs = self.dp_state.covariances * scale[:, None] * scale[None, :]
-        counts = torch.bincount(self.owner, minlength=self.num_policies).to(DTYPE)
-        return GaussianMixture(counts.clamp_min(1.0), means, covs, validate_args=False)
+        return GaussianMixture(self._policy_weights(), means, covs, validate_args=False)
 
     @property
     def policy_rewards(self) -> Tensor:
@@ -488,12 +489,19 @@ class Dipole(PolicySearch):
 
     def load_state_dict(self, state: dict) -> None:
         super().load_state_dict(state)
-        prior = state["initial_prior"]
+        prior = _to_device(state["initial_prior"], self.device)
         self.initial_prior = (
             None if prior is None else NormalInverseWishartPrior.from_state_dict(prior)
         )
-        dp = state["dp_state"]
+        dp = _to_device(state["dp_state"], self.device)
         self.dp_state = None if dp is None else DPMixtureState.from_state_dict(dp)
 
 
-__all__ = ["Dipole", "Power", "PolicySearch", "reward_weights"]
+def _to_device(state, device: torch.device):
+    """``state`` (nested dicts of tensors and numbers, or None) with its tensors on ``device``."""
+    if isinstance(state, dict):
+        return {key: _to_device(value, device) for key, value in state.items()}
+    return state.to(device) if isinstance(state, Tensor) else state
+
+
+__all__ = ["Dipole", "Power", "PolicySearch"]

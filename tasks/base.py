@@ -45,7 +45,7 @@ class EpisodicTask(abc.ABC):
                 a fixed, task-specific default so that equal ``theta`` give equal returns.
 
         Returns:
-            ``[B]`` returns, on ``theta``'s device.
+            ``[B]`` returns, on the task's device.
         """
 
     def describe_policies(self, theta: Tensor) -> list[str]:
