@@ -48,16 +48,13 @@ import multiprocessing
 import time
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from lockstep import on_grid, plot_best_and_average, run_in_lockstep
+from omegaconf import OmegaConf
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from hydra.utils import instantiate  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
-
-from dipole_torch import Dipole, Power  # noqa: E402
+from dipole_torch import Dipole, Power
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = {"cartpole": "Cart-pole", "mountain_car": "Mountain car"}
@@ -97,7 +94,6 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
     start = time.perf_counter()
     task, _, n0 = load_task(name, compile)
     algorithm, options = ALGORITHMS[algo]
-    runs = len(seeds)
     optimizers = [
         algorithm(
             task.theta0,
@@ -110,46 +106,8 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
         for seed in seeds
     ]
     episodes = torch.Generator().manual_seed(episode_seed)  # every episode's random start
-    history: list[list[tuple[int, float, float]]] = [[] for _ in range(runs)]
-    while True:
-        active = [i for i, opt in enumerate(optimizers) if opt.trials < trials]
-        if not active:
-            break
-        asked = [optimizers[i].ask() for i in active]
-        rewards = task.evaluate(torch.cat(asked), episodes).split([len(a) for a in asked])
-        for i, theta, r in zip(active, asked, rewards, strict=True):
-            optimizers[i].tell(theta, r)
-            last = optimizers[i].last_rewards
-            history[i].append((optimizers[i].trials, float(last.max()), float(last.mean())))
-    return job, [np.array(h) for h in history], time.perf_counter() - start
-
-
-def on_grid(history: list[np.ndarray], grid: np.ndarray) -> np.ndarray:
-    """``[runs, 2, G]``: best and average of the latest batch told at or before each trial."""
-    out = np.full((len(history), 2, len(grid)), np.nan)
-    for run, h in enumerate(history):
-        index = np.searchsorted(h[:, 0], grid, side="right") - 1
-        valid = index >= 0
-        out[run, :, valid] = h[index[valid], 1:]
-    return out
-
-
-def plot(name: str, grid: np.ndarray, curves: dict, runs: int, path: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for ax, which, title in ((axes[0], 0, "best policy"), (axes[1], 1, "average of policies")):
-        for algo, values in curves.items():
-            mean, std = values[:, which].mean(0), values[:, which].std(0)
-            ax.plot(grid, mean, color=COLORS[algo], label=LABELS[algo])
-            ax.fill_between(grid, mean - std, mean + std, color=COLORS[algo], alpha=0.2)
-        ax.set_title(f"{TASKS[name]}: {title}")
-        ax.set_xlabel("trials")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel(f"return (mean ± std over {runs} runs)")
-    axes[0].legend(loc="lower right", fontsize="small")
-    fig.suptitle(f"Figure 1 reproduction, {TASKS[name].lower()}: DIPOLE vs PoWER")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    history = run_in_lockstep(task, optimizers, trials, episodes)
+    return job, history, time.perf_counter() - start
 
 
 def main() -> None:
@@ -188,7 +146,7 @@ def main() -> None:
         trials, n0 = budgets[name]
         grid = np.arange(args.grid_step, trials + 1, args.grid_step)
         curves = {
-            algo: on_grid([histories[name, algo][s] for s in range(args.runs)], grid)
+            algo: np.stack([on_grid(histories[name, algo][s], grid) for s in range(args.runs)])
             for algo in ALGORITHMS
         }
         for algo, values in curves.items():
@@ -198,7 +156,15 @@ def main() -> None:
                 f"{final[:, 0].std():6.1f}, average {final[:, 1].mean():8.1f} ± "
                 f"{final[:, 1].std():6.1f}"
             )
-        plot(name, grid, curves, args.runs, args.out / f"figure1_{name}.png")
+        plot_best_and_average(
+            grid,
+            {LABELS[algo]: values for algo, values in curves.items()},
+            {LABELS[algo]: COLORS[algo] for algo in curves},
+            args.out / f"figure1_{name}.png",
+            task_title=TASKS[name],
+            ylabel=f"return (mean ± std over {args.runs} runs)",
+            suptitle=f"Figure 1 reproduction, {TASKS[name].lower()}: DIPOLE vs PoWER",
+        )
         task = load_task(name)[0]
         summary[name] = {
             "runs": args.runs,

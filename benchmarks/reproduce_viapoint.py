@@ -49,6 +49,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
+from lockstep import on_grid, plot_best_and_average, run_in_lockstep  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from dipole_torch import Dipole, Power  # noqa: E402
@@ -87,18 +88,7 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
     start = time.perf_counter()
     task, trials, n0 = load_task()
     optimizers = [make_optimizer(algo, task, n0, seed) for seed in seeds]
-    history: list[list[tuple[int, float, float, int]]] = [[] for _ in seeds]
-    while True:
-        active = [i for i, opt in enumerate(optimizers) if opt.trials < trials]
-        if not active:
-            break
-        asked = [optimizers[i].ask() for i in active]
-        rewards = task.evaluate(torch.cat(asked).to(task.dtype)).double()
-        for i, theta, r in zip(active, asked, rewards.split([len(a) for a in asked]), strict=True):
-            opt = optimizers[i]
-            opt.tell(theta, r)
-            last = opt.last_rewards
-            history[i].append((opt.trials, float(last.max()), float(last.mean()), opt.num_policies))
+    history = run_in_lockstep(task, optimizers, trials)
     runs = []
     for seed, opt, h in zip(seeds, optimizers, history, strict=True):
         means = opt.policy_means.to(task.dtype)
@@ -121,7 +111,7 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
         runs.append(
             {
                 "seed": seed,
-                "history": np.array(h),
+                "history": h,
                 "policy_means": means.double().tolist(),
                 "policy_rewards": mean_rewards.tolist(),
                 "policy_routes": mean_routes,
@@ -131,33 +121,6 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
             }
         )
     return job, runs, time.perf_counter() - start
-
-
-def on_grid(history: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """``[2, G]``: best and average of the latest batch told at or before each grid trial."""
-    out = np.full((2, len(grid)), np.nan)
-    index = np.searchsorted(history[:, 0], grid, side="right") - 1
-    valid = index >= 0
-    out[:, valid] = history[index[valid], 1:3].T
-    return out
-
-
-def plot_curves(grid: np.ndarray, curves: dict, runs: int, path: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for ax, which, title in ((axes[0], 0, "best policy"), (axes[1], 1, "average of policies")):
-        for algo, values in curves.items():
-            mean, std = np.nanmean(values[:, which], 0), np.nanstd(values[:, which], 0)
-            ax.plot(grid, mean, color=COLORS[algo], label=algo)
-            ax.fill_between(grid, mean - std, mean + std, color=COLORS[algo], alpha=0.2)
-        ax.set_title(f"Viapoint task: {title}")
-        ax.set_xlabel("trials (reward evaluations)")
-        ax.set_ylim(0.0, 1.02)
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel(f"reward, eq. 9 (mean ± std, {runs} runs)")
-    axes[0].legend(loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def main() -> None:
@@ -193,7 +156,16 @@ def main() -> None:
         algo: np.stack([on_grid(run["history"], grid) for run in runs])
         for algo, runs in results.items()
     }
-    plot_curves(grid, curves, args.runs, args.out / "figure2_viapoint.png")
+    plot_best_and_average(
+        grid,
+        curves,
+        COLORS,
+        args.out / "figure2_viapoint.png",
+        task_title="Viapoint task",
+        ylabel=f"reward, eq. 9 (mean ± std, {args.runs} runs)",
+        xlabel="trials (reward evaluations)",
+        ylim=(0.0, 1.02),
+    )
 
     summary: dict = {
         "description": (
