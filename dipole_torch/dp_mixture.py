@@ -161,6 +161,7 @@ def neal8_sweep(
     Returns:
         The new state (contiguous labels, occupied components only).
     """
+    _check_concentration(alpha, m)
     y = y.to(DTYPE)
     n, d = y.shape
     prior = state.prior
@@ -306,10 +307,7 @@ def fit_dp_mixture(
     check_finite(y, "y")
     if y.shape[0] < 1:
         raise ValueError("y must contain at least one point")
-    if not alpha > 0:
-        raise ValueError(f"alpha must be positive, got {alpha}")
-    if int(m) < 1:
-        raise ValueError(f"m must be a positive integer, got {m}")
+    _check_concentration(alpha, m)
     if num_sweeps < 1:
         raise ValueError(f"num_sweeps must be >= 1, got {num_sweeps}")
     y = y.to(DTYPE)
@@ -427,6 +425,13 @@ class DPMixture:
 
 
 # --------------------------------------------------------------------------- helpers
+def _check_concentration(alpha: float, m: int) -> None:
+    if not alpha > 0:
+        raise ValueError(f"alpha must be positive, got {alpha}")
+    if int(m) != m or m < 1:
+        raise ValueError(f"m must be a positive integer, got {m}")
+
+
 def _uniforms(n: int, generator: torch.Generator | None, device: torch.device) -> Tensor:
     """``[n]`` U(0, 1) draws from ``generator`` (on its own device), moved to ``device``."""
     where = generator.device if generator is not None else device
