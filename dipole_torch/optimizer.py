@@ -135,7 +135,7 @@ class PolicySearch:
         check_matrix_shape(theta, tuple(self._pending.shape), "theta")
         check_finite(theta, "theta")
         rewards = check_rewards(torch.as_tensor(rewards), theta.shape[0]).to(self.device)
-        self.reward_scale(rewards)  # validates the range before any state changes
+        self.reward_scale.validate(rewards)  # before any state changes
         theta = theta.to(device=self.device, dtype=DTYPE)
         first = not self.started
         owner = (
@@ -174,7 +174,7 @@ class PolicySearch:
         overall[torch.topk(self.rewards, top).indices] = True
         self._keep(overall)
         keep, index, valid = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
-        weights = self.reward_scale(self.rewards)
+        weights = self.reward_scale.weights(self.rewards)  # kept rewards: validated in tell
         slot_weights = weights[index.clamp_min(0)] * valid
         samples = self.thetas[index.clamp_min(0)]
         self.policy_means = power_update(self.policy_means, samples, slot_weights)
@@ -393,7 +393,7 @@ class Dipole(PolicySearch):
     # ------------------------------------------------------------------ clustering
     def _augmented(self) -> Tensor:
         """``[N, D + 1]`` the kept samples as y = [θ, w]."""
-        return torch.cat((self.thetas, self.reward_scale(self.rewards)[:, None]), dim=1)
+        return torch.cat((self.thetas, self.reward_scale.weights(self.rewards)[:, None]), dim=1)
 
     def _after_initial_batch(self) -> None:
         y = self._augmented()

@@ -39,6 +39,11 @@ class RewardScale:
 
     def __call__(self, rewards: Tensor) -> Tensor:
         """``[...]`` weights of ``rewards: [...]``; raises on values outside the range."""
+        self.validate(rewards)
+        return self.weights(rewards)
+
+    def validate(self, rewards: Tensor) -> None:
+        """Raise ``ValueError`` on non-finite rewards, or rewards this scale cannot map."""
         check_finite(rewards, "rewards")
         if self.low is None:
             if (rewards <= 0).any():
@@ -47,13 +52,18 @@ class RewardScale:
                     f"weight by them); got min {float(rewards.min()):g}. Pass reward_range="
                     "(low, high) to map them to [floor, 1]."
                 )
-            return rewards
+            return
         slack = 1e-9 * (self.high - self.low)
         if (rewards < self.low - slack).any() or (rewards > self.high + slack).any():
             raise ValueError(
                 f"rewards outside reward_range ({self.low:g}, {self.high:g}): "
                 f"min {float(rewards.min()):g}, max {float(rewards.max()):g}"
             )
+
+    def weights(self, rewards: Tensor) -> Tensor:
+        """The map itself, for rewards already validated (e.g. the ones an optimizer kept)."""
+        if self.low is None:
+            return rewards
         return ((rewards - self.low) / (self.high - self.low)).clamp(self.floor, 1.0)
 
     def inverse(self, weights: Tensor) -> Tensor:
