@@ -12,6 +12,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from hydra.utils import instantiate  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_task(name: str, **overrides):
+    """The task of ``configs/task/<name>.yaml`` on CPU (constructor ``overrides`` applied),
+    its trial budget and n0."""
+    config = OmegaConf.load(ROOT / "configs" / "task" / f"{name}.yaml")
+    config = OmegaConf.merge({"device": "cpu"}, {"task": config})
+    task = instantiate(config.task.env, **overrides)
+    return task, int(config.task.trials), int(config.task.n0)
 
 
 def run_in_lockstep(

@@ -50,9 +50,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra.utils import instantiate
-from lockstep import on_grid, plot_best_and_average, run_in_lockstep
-from omegaconf import OmegaConf
+from lockstep import load_task, on_grid, plot_best_and_average, run_in_lockstep
 
 from dipole_torch import Dipole, Power
 
@@ -76,14 +74,6 @@ LABELS = {
 }
 
 
-def load_task(name: str, compile: bool = False):
-    """The task, trial budget and n0 of ``configs/task/<name>.yaml`` (on CPU)."""
-    config = OmegaConf.load(ROOT / "configs" / "task" / f"{name}.yaml")
-    config = OmegaConf.merge({"device": "cpu"}, {"task": config})
-    task = instantiate(config.task.env, compile=compile)
-    return task, int(config.task.trials), int(config.task.n0)
-
-
 def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
     """One job: runs ``seeds`` of ``algo`` on task ``name`` in lockstep.
 
@@ -92,7 +82,7 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
     name, algo, seeds, trials, compile, episode_seed = job
     torch.set_num_threads(1)
     start = time.perf_counter()
-    task, _, n0 = load_task(name, compile)
+    task, _, n0 = load_task(name, compile=compile)
     algorithm, options = ALGORITHMS[algo]
     optimizers = [
         algorithm(

@@ -49,7 +49,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
-from lockstep import on_grid, plot_best_and_average, run_in_lockstep  # noqa: E402
+from lockstep import load_task, on_grid, plot_best_and_average, run_in_lockstep  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from dipole_torch import Dipole, Power  # noqa: E402
@@ -57,13 +57,6 @@ from dipole_torch import Dipole, Power  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 ALGORITHMS = {"DIPOLE": "dipole", "PoWER": "power"}
 COLORS = {"DIPOLE": "tab:blue", "PoWER": "tab:red"}
-
-
-def load_task():
-    """The viapoint task (CPU), trial budget and n0 of ``configs/task/viapoint.yaml``."""
-    config = OmegaConf.load(ROOT / "configs" / "task" / "viapoint.yaml")
-    config = OmegaConf.merge({"device": "cpu"}, {"task": config})
-    return instantiate(config.task.env), int(config.task.trials), int(config.task.n0)
 
 
 def make_optimizer(algo: str, task, n0: int, seed: int):
@@ -86,7 +79,7 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
     algo, seeds, threshold = job
     torch.set_num_threads(1)
     start = time.perf_counter()
-    task, trials, n0 = load_task()
+    task, trials, n0 = load_task("viapoint")
     optimizers = [make_optimizer(algo, task, n0, seed) for seed in seeds]
     history = run_in_lockstep(task, optimizers, trials)
     runs = []
@@ -132,7 +125,7 @@ def main() -> None:
     parser.add_argument("--threshold", type=float, default=0.9, help="reward of a found route")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    task, trials, n0 = load_task()
+    task, trials, n0 = load_task("viapoint")
     chunks = max(1, args.workers)
     jobs = [
         (algo, seeds.tolist(), args.threshold)
