@@ -67,5 +67,11 @@ def draw_categorical(logits: torch.Tensor, uniform: torch.Tensor) -> torch.Tenso
     """
     probs = Categorical(logits=logits, validate_args=False).probs
     cdf = probs.cumsum(-1)
-    label = torch.searchsorted(cdf, (uniform * cdf[..., -1]).unsqueeze(-1)).squeeze(-1)
+    total = cdf[..., -1]
+    # The label is the first slot whose CDF exceeds v = u·total (right-sided search), so
+    # v ∈ [cdf[j-1], cdf[j]) and probs[j] > 0: u = 0 skips leading zero-probability slots.
+    # v is kept strictly below total, or u → 1 rounding v up to total would pick trailing ones.
+    below_total = torch.nextafter(total, torch.zeros_like(total))
+    value = torch.minimum(uniform.to(cdf.dtype) * total, below_total)
+    label = torch.searchsorted(cdf, value.unsqueeze(-1), right=True).squeeze(-1)
     return label.clamp_(max=logits.shape[-1] - 1)

@@ -1,10 +1,13 @@
 """The DP mixture: Inverse-Wishart convention, cluster recovery, eq. 6's reward weighting."""
 
+import math
+
 import pytest
 import torch
 from sklearn.metrics import adjusted_rand_score
 
 from dipole_torch import DPMixtureState, NormalInverseWishartPrior, fit_dp_mixture, neal8_sweep
+from dipole_torch.sampling import draw_categorical
 
 F64 = torch.float64
 
@@ -139,3 +142,19 @@ def test_bad_inputs_are_rejected():
         NormalInverseWishartPrior.from_exploration(torch.zeros(2), -torch.eye(2))
     with pytest.raises(ValueError, match="df must exceed"):
         NormalInverseWishartPrior.from_exploration(torch.zeros(2), torch.eye(2), df=2.5)
+
+
+def test_draw_categorical_never_picks_a_zero_probability_slot():
+    # u = 0 lands on the CDF's leading zeros with a left-sided search; u → 1 may round
+    # u·total up to total and land on trailing zeros with a right-sided one.
+    inf = math.inf
+    assert int(draw_categorical(torch.tensor([-inf, 0.0, 0.0]), torch.tensor(0.0))) == 1
+    assert int(draw_categorical(torch.tensor([-inf, -inf, 0.0]), torch.tensor(0.0))) == 2
+    u = torch.tensor(1.0 - 2.0**-53, dtype=F64)
+    for total in (1.0, 1.0 + 2.0**-52, 3.0):
+        logits = torch.tensor([0.0, 0.0, -inf, -inf], dtype=F64) + math.log(total / 2)
+        assert int(draw_categorical(logits, u)) == 1
+    batch = draw_categorical(
+        torch.tensor([[-inf, 0.0], [0.0, -inf]]), torch.tensor([0.0, 0.9999999])
+    )
+    assert batch.tolist() == [1, 0]
