@@ -102,23 +102,50 @@ class DPMixtureState:
         )
 
 
-def reward_weights(mixture: GaussianMixture, query_means: Tensor, floor: float = 1e-6) -> Tensor:
+def reward_weights(
+    mixture: GaussianMixture,
+    query_means: Tensor,
+    floor: float | None = None,
+    weights: Tensor | None = None,
+) -> Tensor:
     """r_c of eq. 6: the reward the mixture predicts at a component's parameter mean.
 
     The reward is the last coordinate of y = [θ, r]; r_c = E[r | θ = μ_c^θ] by Gaussian mixture
     regression on ``mixture`` (the IGMM). Rewards must already be positive weights (see
-    :class:`dipole_torch.RewardScale`); the prediction is clamped below at ``floor``.
+    :class:`dipole_torch.RewardScale`).
+
+    The regression extrapolates linearly away from the data (at a mean drawn from H it can
+    predict far above the best reward, or below zero), so the prediction is clamped:
+
+    * with ``weights``, to the data's range [max(min w, 1e-12·max |w|), max w], so no component
+      is favoured beyond the best observed reward and none is ruled out;
+    * without, below at 1e-12 · the largest |reward mean| of the mixture's components.
+
+    Both bounds are relative, so r_c scales with the rewards and eq. 6's label probabilities
+    do not depend on their units (an absolute floor silently switches eq. 6 off for small
+    rewards). ``floor``, when given, replaces the lower bound by an absolute one.
 
     Args:
         mixture: the IGMM over ``[θ, r]`` (event dim D + 1).
         query_means: ``[..., D + 1]`` component means whose θ-part is queried.
+        floor: optional absolute lower bound on r_c.
+        weights: ``[N]`` the data's reward weights (the last column of y).
 
     Returns:
         ``[...]`` log r_c.
     """
     d = mixture.event_shape[0] - 1
     predicted = mixture.condition(range(d), query_means[..., :d]).mean[..., 0]
-    return predicted.clamp_min(floor).log()
+    reference = (weights if weights is not None else mixture.means[..., -1]).to(predicted)
+    # The smallest normal float only matters for all-zero rewards, where eq. 6 is void.
+    low = (1e-12 * reference.abs().max()).clamp_min(torch.finfo(predicted.dtype).tiny)
+    if weights is not None:
+        low = torch.maximum(low, reference.min())
+    if floor is not None:
+        low = torch.full_like(low, floor)
+    if weights is None:
+        return predicted.clamp_min(low).log()
+    return predicted.clamp(low, torch.maximum(reference.max(), low)).log()
 
 
 def neal8_sweep(
@@ -145,7 +172,8 @@ def neal8_sweep(
     Component parameters are fixed during step 1 (as in Algorithm 8), so the likelihoods of
     all points under all components, and under their auxiliary draws, are computed in a few
     batched calls before the per-point loop; r_c likewise comes from the mixture at the start
-    of the sweep. The loop itself does O(K) work per point.
+    of the sweep, clamped to the range of the data's reward weights ``y[:, -1]``
+    (:func:`reward_weights`). The loop itself does O(K) work per point.
 
     Args:
         y: ``[N, D]`` data (for DIPOLE, ``[θ, r]`` with the positive reward weight last).
@@ -183,8 +211,8 @@ def neal8_sweep(
     aux_log_r = torch.zeros(n, m, dtype=DTYPE, device=y.device)
     if reward_weighted:
         current = state.mixture()
-        log_r[:k] = reward_weights(current, state.means)
-        aux_log_r = reward_weights(current, aux_means)
+        log_r[:k] = reward_weights(current, state.means, weights=y[:, -1])
+        aux_log_r = reward_weights(current, aux_means, weights=y[:, -1])
     log_aux_prior = math.log(alpha / m)
     uniforms = _uniforms(n, generator, y.device)
 

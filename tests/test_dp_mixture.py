@@ -6,7 +6,14 @@ import pytest
 import torch
 from sklearn.metrics import adjusted_rand_score
 
-from dipole_torch import DPMixtureState, NormalInverseWishartPrior, fit_dp_mixture, neal8_sweep
+from dipole_torch import (
+    DPMixtureState,
+    NormalInverseWishartPrior,
+    dp_mixture,
+    fit_dp_mixture,
+    neal8_sweep,
+)
+from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.sampling import draw_categorical
 
 F64 = torch.float64
@@ -142,6 +149,112 @@ def test_bad_inputs_are_rejected():
         NormalInverseWishartPrior.from_exploration(torch.zeros(2), -torch.eye(2))
     with pytest.raises(ValueError, match="df must exceed"):
         NormalInverseWishartPrior.from_exploration(torch.zeros(2), torch.eye(2), df=2.5)
+
+
+def reward_task(generator, n=20):
+    """y = [θ, w] with w rising steeply in θ inside the data: Gaussian mixture regression at a
+    mean drawn from H (spread like the data) extrapolates beyond the data's weights."""
+    theta = torch.linspace(-1.0, 1.0, n, dtype=F64)[:, None]
+    w = (0.5 + 0.45 * theta + 0.02 * torch.randn(n, 1, generator=generator, dtype=F64)).clamp(
+        1e-3, 1.0
+    )
+    return torch.cat((theta, w), 1)
+
+
+def reward_prior(y):
+    """H as DIPOLE builds it: centred on the data, Σ0 = E[Σ] = blockdiag(var θ, var w)."""
+    return NormalInverseWishartPrior.from_exploration(y.mean(0), torch.diag(y.var(0)), df=5.0)
+
+
+def test_eq6_r_c_stays_within_the_data_reward_range(monkeypatch):
+    # r_c of occupied and of auxiliary components is a GMR prediction; at a mean drawn from H
+    # it extrapolates (here up to ~1.3 and down to < 0). It must stay in [min w, max w].
+    g = torch.Generator().manual_seed(0)
+    y = reward_task(g)
+    recorded = []
+    original = dp_mixture.reward_weights
+
+    def spy(*args, **kwargs):
+        out = original(*args, **kwargs)
+        recorded.append(out)
+        return out
+
+    monkeypatch.setattr(dp_mixture, "reward_weights", spy)
+    fit_dp_mixture(y, reward_prior(y), num_sweeps=3, reward_weighted=True, generator=g)
+    r_c = torch.cat([r.flatten() for r in recorded]).exp()
+    w = y[:, -1]
+    assert len(recorded) >= 6 and r_c.numel() > 60
+    assert float(r_c.min()) >= float(w.min()) * (1 - 1e-12)
+    assert float(r_c.max()) <= float(w.max()) * (1 + 1e-12)
+
+
+def reward_scaling(d, factor):
+    """``[D]`` s with the reward coordinate scaled by ``factor``, and ``[D, D]`` s sᵀ."""
+    s = torch.ones(d, dtype=F64)
+    s[-1] = factor
+    return s, s[:, None] * s[None, :]
+
+
+def scaled_reward(y, prior, factor):
+    """The same task with the reward column, and H's reward coordinate, multiplied by factor."""
+    s, outer = reward_scaling(y.shape[1], factor)
+    scaled = NormalInverseWishartPrior(
+        prior.mean_loc * s,
+        prior.mean_covariance * outer,
+        prior.df,
+        prior.scale * outer,
+        prior.regularization * outer,
+    )
+    return y * s, scaled
+
+
+def test_eq6_r_c_is_relative_to_the_reward_scale():
+    # Eq. 6 multiplies every component's probability by r_c, so rescaling the rewards must
+    # not change the label probabilities: log r_c shifts by log(factor) for every component.
+    # An absolute floor (1e-6) switched eq. 6 off for rewards of order 1e-7.
+    g = torch.Generator().manual_seed(1)
+    y = reward_task(g)
+    prior = reward_prior(y)
+    state = fit_dp_mixture(y, prior, num_sweeps=3, reward_weighted=True, generator=g)
+    queries = prior.sample(50, g)[0]
+    factor = 1e-7
+    s, outer = reward_scaling(y.shape[1], factor)
+    mixture = state.mixture()
+    mixture_s = GaussianMixture(
+        mixture.weights, mixture.means * s, mixture.covariances * outer, validate_args=False
+    )
+    for w in (None, y[:, -1]):
+        kwargs, kwargs_s = ({}, {}) if w is None else ({"weights": w}, {"weights": w * factor})
+        log_r = dp_mixture.reward_weights(mixture, queries, **kwargs)
+        log_r_s = dp_mixture.reward_weights(mixture_s, queries * s, **kwargs_s)
+        torch.testing.assert_close(log_r_s - log_r, torch.full_like(log_r, math.log(factor)))
+
+
+def three_reward_clusters(generator, n=30):
+    """y = [θ, w]: three overlapping clusters in θ with mean weights 0.2, 0.5 and 0.9."""
+    true = torch.arange(3).repeat_interleave(n // 3)
+    theta = torch.tensor([-1.0, 0.0, 1.0], dtype=F64)[true]
+    theta = theta + 0.4 * torch.randn(n, generator=generator, dtype=F64)
+    w = torch.tensor([0.2, 0.5, 0.9], dtype=F64)[true]
+    w = w + 0.05 * torch.randn(n, generator=generator, dtype=F64)
+    return torch.stack((theta, w.clamp(1e-3, 1.0)), 1)
+
+
+def test_eq6_chain_is_invariant_to_the_reward_scale():
+    # Same generator, rewards and H's reward coordinate scaled by 1e-7: the same chain.
+    y = three_reward_clusters(torch.Generator().manual_seed(0))
+    prior = reward_prior(y)
+    y_s, prior_s = scaled_reward(y, prior, 1e-7)
+
+    def fit(y, prior, weighted):
+        g = torch.Generator().manual_seed(3)
+        return fit_dp_mixture(y, prior, 8, reward_weighted=weighted, generator=g, init="sequential")
+
+    a, b = fit(y, prior, True), fit(y_s, prior_s, True)
+    assert not torch.equal(a.labels, fit(y, prior, False).labels)  # eq. 6 matters here
+    assert torch.equal(a.labels, b.labels)
+    torch.testing.assert_close(b.means[:, :-1], a.means[:, :-1])
+    torch.testing.assert_close(b.means[:, -1], 1e-7 * a.means[:, -1], rtol=1e-6, atol=0)
 
 
 def test_draw_categorical_never_picks_a_zero_probability_slot():
