@@ -55,11 +55,15 @@ class DPMixtureState:
 
     @classmethod
     def single_component(cls, y: Tensor, prior: NormalInverseWishartPrior) -> DPMixtureState:
-        """Algorithm 1's start: one component with the data's mean and covariance."""
+        """Algorithm 1's start: one component with the data's mean and covariance.
+
+        Args:
+            y: ``[N, D]`` data.
+        """
         y = y.to(DTYPE)
         n = y.shape[0]
-        mean = y.mean(0)
-        centred = y - mean
+        mean = _mean(y)
+        centred = y - mean  # the covariance from centred data: exact at any offset
         cov = centred.T @ centred / max(n - 1, 1) + prior.regularization
         if torch.linalg.cholesky_ex(cov)[1] != 0 or n < 2:
             cov = prior.expected_covariance + prior.regularization
@@ -79,8 +83,9 @@ class DPMixtureState:
         y = y.to(DTYPE)
         labels = torch.unique(labels, return_inverse=True)[1].to(y.device)
         k = int(labels.max()) + 1
-        counts, sums, _ = _sufficient_statistics(y, labels, k)
-        means = sums / counts[:, None]
+        centre = _mean(y)
+        counts = torch.bincount(labels, minlength=k).to(DTYPE)
+        means = centre + _residual_sums(y, labels, centre, k) / counts[:, None]
         covs = (prior.expected_covariance + prior.regularization).expand(k, -1, -1).clone()
         return posterior_point_estimate(y, cls(labels, means, covs, prior))
 
@@ -279,11 +284,13 @@ def resample_parameters(
     for the regularised covariance the likelihoods then use.
     """
     prior = state.prior
-    counts, sums, outer = _sufficient_statistics(y, state.labels, state.num_components)
+    labels, k = state.labels, state.num_components
+    counts = torch.bincount(labels, minlength=k).to(DTYPE)
+    residuals = _residual_sums(y, labels, prior.mean_loc, k)
     means, covs = state.means, state.covariances
     for _ in range(steps):
-        means = draw(_mean_conditional(prior, covs, counts, sums), (), generator)
-        scatter = _scatter(counts, sums, outer, means)
+        means = draw(_mean_conditional(prior, covs, counts, residuals), (), generator)
+        scatter = _scatter(y, labels, means)
         covs = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, generator)
         covs = covs + prior.regularization
     return replace(state, means=means, covariances=covs)
@@ -293,15 +300,22 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
     """Replace the last draw by conditional posterior means: E[Σ | μ, y] then E[μ | Σ, y].
 
     DIPOLE explores with each component's covariance; a single inverse-Wishart draw from five
-    points in ten dimensions is too erratic for that, its conditional mean is not.
+    points in ten dimensions is too erratic for that, its conditional mean is not. Scatters are
+    computed from centred data, so the estimate holds at any offset of y.
+
+    Args:
+        y: ``[N, D]`` data.
+        state: labels ``[N]``, means ``[K, D]`` (S is taken about them) and H.
     """
     y = y.to(DTYPE)
     prior = state.prior
-    counts, sums, outer = _sufficient_statistics(y, state.labels, state.num_components)
-    scatter = _scatter(counts, sums, outer, state.means)
+    labels, k = state.labels, state.num_components
+    counts = torch.bincount(labels, minlength=k).to(DTYPE)
+    scatter = _scatter(y, labels, state.means)
     dof = (prior.df + counts - prior.dim - 1)[:, None, None]
     covs = (prior.scale + scatter) / dof + prior.regularization
-    means = _mean_conditional(prior, covs, counts, sums).mean
+    residuals = _residual_sums(y, labels, prior.mean_loc, k)
+    means = _mean_conditional(prior, covs, counts, residuals).mean
     return replace(state, means=means, covariances=covs)
 
 
@@ -499,34 +513,56 @@ def _collect(
     return all_means, all_covs
 
 
-def _sufficient_statistics(y: Tensor, labels: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Per component: counts ``[K]``, Σ y ``[K, D]``, Σ y yᵀ ``[K, D, D]``."""
-    d = y.shape[-1]
-    counts = torch.bincount(labels, minlength=k).to(y.dtype)
-    sums = torch.zeros(k, d, dtype=y.dtype, device=y.device).index_add_(0, labels, y)
-    outer = torch.zeros(k, d, d, dtype=y.dtype, device=y.device).index_add_(
-        0, labels, y[:, :, None] * y[:, None, :]
+def _mean(y: Tensor) -> Tensor:
+    """``[D]`` mean of ``y: [N, D]``, refined by the mean residual (for large offsets)."""
+    mean = y.mean(0)
+    return mean + (y - mean).mean(0)
+
+
+def _residual_sums(y: Tensor, labels: Tensor, centres: Tensor, k: int) -> Tensor:
+    """``[K, D]`` Σ_{i in c} (y_i − centre_c) for ``centres: [K, D]`` or one ``[D]``.
+
+    Sums of residuals rather than of raw data: Σ y at an offset of 1e6 carries no digits of
+    a spread of 1e-2 once the offset is subtracted again.
+    """
+    centred = y - (centres[labels] if centres.dim() == 2 else centres)
+    return torch.zeros(k, y.shape[-1], dtype=y.dtype, device=y.device).index_add_(
+        0, labels, centred
     )
-    return counts, sums, outer
 
 
-def _scatter(counts: Tensor, sums: Tensor, outer: Tensor, means: Tensor) -> Tensor:
-    """Σ_i (y_i − μ)(y_i − μ)ᵀ per component, from the sufficient statistics."""
-    cross = sums[:, :, None] * means[:, None, :]
-    scatter = outer - cross - cross.transpose(-1, -2)
-    scatter = scatter + counts[:, None, None] * means[:, :, None] * means[:, None, :]
+def _scatter(y: Tensor, labels: Tensor, means: Tensor) -> Tensor:
+    """``[K, D, D]`` Σ_{i in c} (y_i − μ_c)(y_i − μ_c)ᵀ for ``means: [K, D]``, batched.
+
+    Computed from centred residuals: Σ y yᵀ − 2 (Σ y) μᵀ + n μ μᵀ from raw sums cancels
+    catastrophically at large offsets (1e12 against a scatter of 1e-4 at θ ≈ 1e6) and can
+    leave the inverse-Wishart scale indefinite.
+    """
+    d = y.shape[-1]
+    centred = y - means[labels]
+    scatter = torch.zeros(means.shape[0], d, d, dtype=y.dtype, device=y.device)
+    scatter.index_add_(0, labels, centred[:, :, None] * centred[:, None, :])
     return 0.5 * (scatter + scatter.transpose(-1, -2))
 
 
 def _mean_conditional(
-    prior: NormalInverseWishartPrior, covs: Tensor, counts: Tensor, sums: Tensor
+    prior: NormalInverseWishartPrior, covs: Tensor, counts: Tensor, residuals: Tensor
 ) -> MultivariateNormal:
-    """μ | Σ, y ~ N(P⁻¹ (Σ0⁻¹ μ0 + Σ⁻¹ Σ y), P⁻¹), P = Σ0⁻¹ + n Σ⁻¹, batched over K."""
+    """μ | Σ, y ~ N(P⁻¹ (Σ0⁻¹ μ0 + Σ⁻¹ Σ y), P⁻¹), P = Σ0⁻¹ + n Σ⁻¹, batched over K.
+
+    The location is computed as μ0 + P⁻¹ Σ⁻¹ Σ_i (y_i − μ0), the same quantity without the
+    cancellation of μ0-sized terms at large offsets.
+
+    Args:
+        covs: ``[K, D, D]`` component covariances Σ (regularisation included).
+        counts: ``[K]`` points per component.
+        residuals: ``[K, D]`` Σ_{i in c} (y_i − μ0) (:func:`_residual_sums` about μ0).
+    """
     prior_precision = torch.cholesky_inverse(torch.linalg.cholesky(prior.mean_covariance))
     precision_k = torch.cholesky_inverse(torch.linalg.cholesky(covs))
     precision = prior_precision + counts[:, None, None] * precision_k
     precision = 0.5 * (precision + precision.transpose(-1, -2))
-    rhs = prior_precision @ prior.mean_loc + (precision_k @ sums[:, :, None]).squeeze(-1)
+    rhs = (precision_k @ residuals[:, :, None]).squeeze(-1)
     chol = torch.linalg.cholesky(precision)
-    loc = torch.cholesky_solve(rhs[:, :, None], chol).squeeze(-1)
+    loc = prior.mean_loc + torch.cholesky_solve(rhs[:, :, None], chol).squeeze(-1)
     return MultivariateNormal(loc, precision_matrix=precision, validate_args=False)

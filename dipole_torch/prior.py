@@ -157,8 +157,11 @@ class NormalInverseWishartPrior:
         hyper_precision = _inverse(initial.mean_covariance)
         spread_precision = _inverse(self.mean_covariance)
         precision = hyper_precision + k * spread_precision
-        rhs = hyper_precision @ initial.mean_loc + spread_precision @ means.sum(0)
-        loc = torch.cholesky_solve(rhs[:, None], torch.linalg.cholesky(precision)).squeeze(-1)
+        # loc = P⁻¹ (Σ_h⁻¹ μ0_init + Σ0⁻¹ Σ_k μ_k), written about μ0_init so that large offsets
+        # of the means cancel before the solve rather than after it.
+        rhs = spread_precision @ (means - initial.mean_loc).sum(0)
+        chol = torch.linalg.cholesky(precision)
+        loc = initial.mean_loc + torch.cholesky_solve(rhs[:, None], chol).squeeze(-1)
         mean_loc = draw(
             MultivariateNormal(loc, precision_matrix=_symmetric(precision)), (), generator
         )

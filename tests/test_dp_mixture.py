@@ -13,6 +13,7 @@ from dipole_torch import (
     fit_dp_mixture,
     neal8_sweep,
 )
+from dipole_torch.dp_mixture import posterior_point_estimate
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.sampling import draw_categorical
 
@@ -271,3 +272,42 @@ def test_draw_categorical_never_picks_a_zero_probability_slot():
         torch.tensor([[-inf, 0.0], [0.0, -inf]]), torch.tensor([0.0, 0.9999999])
     )
     assert batch.tolist() == [1, 0]
+
+
+def offset_task(offset, generator):
+    """Two clusters 0.22 apart with spread 0.01, centred on ``offset`` in every coordinate;
+    H from the exploration distribution N(offset·1, 1e-3·I)."""
+    d = 3
+    true = torch.arange(2).repeat_interleave(12)
+    centres = torch.tensor([[0.1, -0.05, 0.0], [-0.1, 0.05, 0.0]], dtype=F64)
+    y = centres[true] + 0.01 * torch.randn(len(true), d, generator=generator, dtype=F64)
+    prior = NormalInverseWishartPrior.from_exploration(
+        torch.full((d,), offset, dtype=F64), 1e-3 * torch.eye(d, dtype=F64), regularization=1e-3
+    )
+    return y + offset, prior, true
+
+
+def test_large_offsets_keep_the_partition():
+    # θ0 = 1e6·1: second moments about the origin (1e12, spacing 1e-4) carry no digit of a
+    # scatter of 1e-3, and the inverse-Wishart scale stops being positive definite.
+    y, prior, true = offset_task(0.0, torch.Generator().manual_seed(5))
+    y_far, prior_far, _ = offset_task(1e6, torch.Generator().manual_seed(5))
+    for init in ("single", "sequential"):
+        a = fit_dp_mixture(y, prior, 10, generator=torch.Generator().manual_seed(6), init=init)
+        b = fit_dp_mixture(
+            y_far, prior_far, 10, generator=torch.Generator().manual_seed(6), init=init
+        )
+        assert torch.equal(a.labels, b.labels)
+        torch.testing.assert_close(b.means - 1e6, a.means, rtol=0, atol=1e-8)
+        torch.testing.assert_close(b.covariances, a.covariances, rtol=1e-5, atol=0)
+        estimate_a, estimate_b = posterior_point_estimate(y, a), posterior_point_estimate(y_far, b)
+        torch.testing.assert_close(
+            estimate_b.covariances, estimate_a.covariances, rtol=1e-5, atol=0
+        )
+    assert adjusted_rand_score(true.numpy(), a.labels.numpy()) == 1.0  # two clusters found
+    start_a = DPMixtureState.from_labels(y, true, prior)
+    start_b = DPMixtureState.from_labels(y_far, true, prior_far)
+    torch.testing.assert_close(start_b.covariances, start_a.covariances, rtol=1e-5, atol=0)
+    single_a = DPMixtureState.single_component(y, prior)
+    single_b = DPMixtureState.single_component(y_far, prior_far)
+    torch.testing.assert_close(single_b.covariances, single_a.covariances, rtol=1e-5, atol=0)
