@@ -30,7 +30,8 @@ class DPMixtureState:
         labels: ``[N]`` component index of every point, contiguous in ``[0, K)``.
         means: ``[K, D]`` component means.
         covariances: ``[K, D, D]`` component covariances (regularisation included).
-        prior: the base distribution H, updated after every sweep.
+        prior: the base distribution H, updated after every sweep unless the chain runs with
+            ``update_prior=False``.
     """
 
     labels: Tensor
@@ -162,6 +163,7 @@ def neal8_sweep(
     generator: torch.Generator | None = None,
     inner_steps: int = 2,
     initial_prior: NormalInverseWishartPrior | None = None,
+    update_prior: bool = True,
 ) -> DPMixtureState:
     """One Gibbs sweep of Neal's Algorithm 8 (the paper's Algorithm 1, eqs. 5 and 6).
 
@@ -171,8 +173,9 @@ def neal8_sweep(
        parameters fill the first auxiliary slot). The common factor b/(n − 1 + α) cancels.
     2. Every occupied component's parameters are redrawn from their conditional posteriors,
        ``inner_steps`` alternations of μ | Σ, y (Normal) and Σ | μ, y (Inverse-Wishart).
-    3. H's hyperparameters are redrawn given the components
-       (:meth:`NormalInverseWishartPrior.updated`).
+    3. If ``update_prior``, H's hyperparameters are redrawn given the components
+       (:meth:`NormalInverseWishartPrior.updated`); otherwise H stays fixed and the chain
+       samples the DP mixture posterior under that H.
 
     Component parameters are fixed during step 1 (as in Algorithm 8), so the likelihoods of
     all points under all components, and under their auxiliary draws, are computed in a few
@@ -190,6 +193,7 @@ def neal8_sweep(
         inner_steps: alternations of the μ and Σ conditionals per sweep.
         initial_prior: the prior the chain started from (anchors the update of H);
             defaults to ``state.prior``.
+        update_prior: redraw H's hyperparameters after the sweep (step 3).
 
     Returns:
         The new state (contiguous labels, occupied components only).
@@ -264,10 +268,11 @@ def neal8_sweep(
     labels = remap[labels]
     new_state = DPMixtureState(labels, all_means[occupied], all_covs[occupied], prior)
     new_state = resample_parameters(y, new_state, inner_steps, generator)
-    anchor = initial_prior if initial_prior is not None else prior
-    new_state.prior = prior.updated(
-        new_state.means, new_state.covariances - prior.regularization, anchor, generator
-    )
+    if update_prior:
+        anchor = initial_prior if initial_prior is not None else prior
+        new_state.prior = prior.updated(
+            new_state.means, new_state.covariances - prior.regularization, anchor, generator
+        )
     return new_state
 
 
@@ -329,6 +334,7 @@ def fit_dp_mixture(
     generator: torch.Generator | None = None,
     state: DPMixtureState | None = None,
     init: str = "single",
+    update_prior: bool = True,
 ) -> DPMixtureState:
     """Run ``num_sweeps`` Gibbs sweeps and return the last state.
 
@@ -344,6 +350,8 @@ def fit_dp_mixture(
             clusters spread over a low-dimensional subspace of a 10-D space essentially never
             happens. Use ``"sequential"`` to fit a fresh, large data set; DIPOLE's own
             clusterings are small (n0 points, then ≤ K·M warm-started ones).
+        update_prior: redraw H's hyperparameters after every sweep (Algorithm 1's "update
+            priors"); ``False`` keeps H fixed at ``prior`` (or at ``state.prior``).
     """
     check_matrix_shape(y, (-1, prior.dim), "y")
     check_finite(y, "y")
@@ -367,7 +375,14 @@ def fit_dp_mixture(
         )
     for _ in range(num_sweeps):
         state = neal8_sweep(
-            y, state, alpha, int(m), reward_weighted, generator, initial_prior=prior
+            y,
+            state,
+            alpha,
+            int(m),
+            reward_weighted,
+            generator,
+            initial_prior=prior,
+            update_prior=update_prior,
         )
     return state
 
@@ -419,6 +434,10 @@ def sequential_labels(
 class DPMixture:
     """Convenience wrapper: a DP Gaussian mixture with fixed hyperparameters.
 
+    H stays at ``prior`` by default (``update_prior=False``): the chain samples the DP mixture
+    posterior under that base distribution. ``update_prior=True`` redraws H's hyperparameters
+    after every sweep, as DIPOLE does (:func:`fit_dp_mixture`'s default).
+
     Example:
         >>> g = torch.Generator().manual_seed(2)
         >>> y = torch.randn(100, 2, generator=g, dtype=torch.float64)
@@ -439,11 +458,13 @@ class DPMixture:
         alpha: float = 1.0,
         m: int = 10,
         reward_weighted: bool = False,
+        update_prior: bool = False,
     ):
         self.prior = prior
         self.alpha = alpha
         self.m = m
         self.reward_weighted = reward_weighted
+        self.update_prior = update_prior
 
     def fit(
         self,
@@ -463,6 +484,7 @@ class DPMixture:
             generator,
             state,
             init,
+            update_prior=self.update_prior,
         )
 
 

@@ -1,0 +1,157 @@
+"""The Gibbs sampler against an exactly computed posterior.
+
+Three points in 1-D, H fixed (``update_prior=False``), no reward weighting: the posterior over
+the 5 partitions of {0, 1, 2} is
+
+    P(partition) ∝ α^K Π_c (n_c − 1)! / Π_{i<3} (α + i) · Π_c p(y_c),
+
+the Chinese-restaurant prior times each block's marginal likelihood
+
+    p(y_c) = ∫∫ Π_{i in c} N(y_i; μ, σ² + R) N(μ; μ0, s0²) IG(σ²; ν0/2, ψ0/2) dμ dσ²
+
+(a 1-D inverse-Wishart IW(ν0, ψ0) is the inverse-gamma IG(ν0/2, ψ0/2)). Given σ², μ integrates
+analytically: y_c ~ N(μ0·1, (σ² + R) I + s0² 11ᵀ); σ² is integrated numerically.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import integrate
+
+from dipole_torch import (
+    DPMixture,
+    DPMixtureState,
+    NormalInverseWishartPrior,
+    neal8_sweep,
+)
+
+F64 = torch.float64
+
+# The 5 partitions of {0, 1, 2}, in the order of partition_index.
+PARTITIONS = [((0, 1, 2),), ((0,), (1, 2)), ((1,), (0, 2)), ((2,), (0, 1)), ((0,), (1,), (2,))]
+
+Y = (-1.0, 0.2, 1.5)
+MU0, S0_SQ, NU0, PSI0, ALPHA, M = 0.0, 4.0, 4.0, 1.0, 1.0, 3
+
+
+def block_log_marginal(yc, mu0, s0_sq, nu0, psi0, reg):
+    """log p(y_c) by quadrature over t = log σ² (μ integrated analytically)."""
+    d = np.asarray(yc, dtype=float) - mu0
+    n = len(d)
+    a, b = nu0 / 2, psi0 / 2
+
+    def log_integrand(t):
+        v = math.exp(t) + reg  # the likelihood's variance σ² + R
+        big = v + n * s0_sq  # eigenvalue of v I + s0² 11ᵀ along 1
+        quad = (d @ d - s0_sq * d.sum() ** 2 / big) / v
+        log_lik = -0.5 * (n * math.log(2 * math.pi) + (n - 1) * math.log(v) + math.log(big) + quad)
+        log_ig = a * math.log(b) - math.lgamma(a) - (a + 1) * t - b / math.exp(t)
+        return log_lik + log_ig + t  # + t: dσ² = σ² dt
+
+    grid = np.linspace(-30.0, 30.0, 3001)
+    values = [log_integrand(t) for t in grid]
+    peak = max(values)
+    value, _ = integrate.quad(
+        lambda t: math.exp(log_integrand(t) - peak),
+        -30.0,
+        30.0,
+        points=[grid[int(np.argmax(values))]],
+        limit=500,
+        epsabs=0.0,
+        epsrel=1e-10,
+    )
+    return math.log(value) + peak
+
+
+def exact_partition_probabilities(y, mu0, s0_sq, nu0, psi0, reg, alpha):
+    """``[5]`` posterior probabilities of PARTITIONS."""
+    log_post = []
+    for partition in PARTITIONS:
+        log_crp = len(partition) * math.log(alpha) + sum(math.lgamma(len(c)) for c in partition)
+        log_crp -= sum(math.log(alpha + i) for i in range(len(y)))
+        log_lik = sum(
+            block_log_marginal([y[i] for i in c], mu0, s0_sq, nu0, psi0, reg) for c in partition
+        )
+        log_post.append(log_crp + log_lik)
+    log_post = np.array(log_post)
+    p = np.exp(log_post - log_post.max())
+    return p / p.sum()
+
+
+def partition_index(labels):
+    """``[S]`` index into PARTITIONS of each row of ``labels: [S, 3]``."""
+    same01 = labels[:, 0] == labels[:, 1]
+    same02 = labels[:, 0] == labels[:, 2]
+    same12 = labels[:, 1] == labels[:, 2]
+    index = torch.full((labels.shape[0],), 4)
+    index[same01 & same02] = 0
+    index[~same01 & ~same02 & same12] = 1
+    index[~same01 & same02 & ~same12] = 2
+    index[same01 & ~same02 & ~same12] = 3
+    return index
+
+
+def fixed_prior(reg, psi0=PSI0):
+    return NormalInverseWishartPrior(
+        mean_loc=torch.tensor([MU0], dtype=F64),
+        mean_covariance=torch.tensor([[S0_SQ]], dtype=F64),
+        df=NU0,
+        scale=torch.tensor([[psi0]], dtype=F64),
+        regularization=torch.tensor([[reg]], dtype=F64),
+    )
+
+
+def gibbs_partitions(reg, psi0, sweeps, burn_in, seed):
+    """``[sweeps]`` partition index after every sweep of a chain with H fixed."""
+    y = torch.tensor(Y, dtype=F64)[:, None]
+    state = DPMixtureState.single_component(y, fixed_prior(reg, psi0))
+    g = torch.Generator().manual_seed(seed)
+    labels = []
+    for i in range(burn_in + sweeps):
+        state = neal8_sweep(y, state, ALPHA, M, generator=g, update_prior=False)
+        if i >= burn_in:
+            labels.append(state.labels)
+    return partition_index(torch.stack(labels))
+
+
+def test_block_marginal_quadrature_against_a_grid():
+    # The 1-D quadrature (μ analytic) against a brute-force 2-D grid over (μ, log σ²).
+    yc, reg = np.array([-1.0, 0.2]), 0.5
+    mu = np.linspace(-12.0, 12.0, 1201)[:, None]
+    t = np.linspace(-12.0, 8.0, 1201)[None, :]
+    v = np.exp(t) + reg
+    a, b = NU0 / 2, PSI0 / 2
+    log_f = sum(-0.5 * (math.log(2 * math.pi * 1.0) + np.log(v) + (y - mu) ** 2 / v) for y in yc)
+    log_f = log_f - 0.5 * (math.log(2 * math.pi * S0_SQ) + (mu - MU0) ** 2 / S0_SQ)
+    log_f = log_f + a * math.log(b) - math.lgamma(a) - (a + 1) * t - b / np.exp(t) + t
+    grid = math.log(np.exp(log_f).sum() * (mu[1, 0] - mu[0, 0]) * (t[0, 1] - t[0, 0]))
+    assert block_log_marginal(yc, MU0, S0_SQ, NU0, PSI0, reg) == pytest.approx(grid, abs=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("reg, psi0", [(0.0, 1.0)])  # exact: 0.138 0.238 0.037 0.263 0.324
+def test_gibbs_matches_the_exact_partition_posterior(reg, psi0):
+    """Label frequencies of 1000 sweeps against the exact partition posterior.
+
+    Margin: 4 Monte-Carlo standard errors, sqrt(τ p (1 − p) / 1000) with an integrated
+    autocorrelation time τ = 2 (batch means over 2000-sweep chains gave τ ≈ 0.9 to 2.1):
+    0.062 for p = 0.14, 0.084 for p = 0.33. Dropping the α/m of new components (α instead)
+    moves the singletons to 0.62.
+    """
+    sweeps = 1000
+    exact = exact_partition_probabilities(Y, MU0, S0_SQ, NU0, psi0, reg, ALPHA)
+    index = gibbs_partitions(reg, psi0, sweeps, burn_in=100, seed=0)
+    frequency = torch.bincount(index, minlength=5).double().numpy() / sweeps
+    margin = 4.0 * np.sqrt(2.0 * exact * (1.0 - exact) / sweeps)
+    assert (np.abs(frequency - exact) < margin).all(), (exact, frequency, margin)
+
+
+def test_fixed_prior_stays_fixed():
+    y = torch.randn(20, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
+    prior = NormalInverseWishartPrior.from_exploration(y.mean(0), torch.cov(y.T))
+    g = torch.Generator().manual_seed(1)
+    assert DPMixture(prior).fit(y, num_sweeps=3, generator=g).prior is prior
+    moved = DPMixture(prior, update_prior=True).fit(y, num_sweeps=3, generator=g).prior
+    assert not torch.equal(moved.scale, prior.scale)
