@@ -112,7 +112,7 @@ def main(cfg: DictConfig) -> dict:
         theta0=task.theta0.double(),
         sigma_start=task.sigma_start.double(),
         n0=cfg.task.n0,
-        reward_range=tuple(task.reward_range),
+        reward_range=tuple(task.reward_range) if cfg.algo.use_task_reward_range else None,
         generator=generator,
     )
     history: list[dict] = []

@@ -305,6 +305,9 @@ def _global_rngs(seed: int) -> Iterator[None]:
         np.random.set_state(saved[1])
 
 
+CMA_TOLX = 1e-3 * SIGMA0
+
+
 def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
     import cma
 
@@ -330,6 +333,13 @@ def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> S
                 "verbose": -9,
                 "verb_log": 0,
                 "verb_disp": 0,
+                # Restart once the step size is below what "found" needs (1e-3·sigma0, the
+                # precision at which DIPOLE retires a policy), not at pycma's default 1e-11:
+                # converging further only spends trials that the next restart could use.
+                # No tolerance on f: the landscapes' scale spans 10^±3.
+                "tolx": CMA_TOLX,
+                "tolfun": 0.0,
+                "tolfunhist": 0.0,
             }
             restarts += 1
             es = cma.CMAEvolutionStrategy(rng.uniform(-BOX, BOX, d), SIGMA0, options)

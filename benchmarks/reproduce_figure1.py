@@ -58,12 +58,16 @@ ROOT = Path(__file__).resolve().parents[1]
 TASKS = {"cartpole": "Cart-pole", "mountain_car": "Mountain car"}
 DECAY = 0.98  # PoWER's per-iteration exploration decay; see the module docstring
 ALGORITHMS = {  # curve label -> (optimizer, extra keyword arguments)
-    "DIPOLE": (Dipole, {}),
+    # The library's default DIPOLE learns the returns' range from its samples; the paper's
+    # variant and PoWER are told the task's range.
+    "DIPOLE": (Dipole, {"reward_range": None}),
+    "DIPOLE (paper)": (Dipole.paper, {}),
     "PoWER": (Power, {}),
     "PoWER, decaying exploration": (Power, {"exploration_decay": DECAY}),
 }
 COLORS = {
     "DIPOLE": "tab:blue",
+    "DIPOLE (paper)": "tab:cyan",
     "PoWER": "tab:red",
     "PoWER, decaying exploration": "tab:orange",
 }
@@ -89,9 +93,8 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
             task.theta0,
             task.sigma_start,
             n0=n0,
-            reward_range=task.reward_range,
             generator=torch.Generator().manual_seed(seed),
-            **options,
+            **({"reward_range": task.reward_range} | options),
         )
         for seed in seeds
     ]

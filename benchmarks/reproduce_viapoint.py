@@ -55,8 +55,8 @@ from omegaconf import OmegaConf  # noqa: E402
 from dipole_torch import Dipole, Power  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-ALGORITHMS = {"DIPOLE": "dipole", "PoWER": "power"}
-COLORS = {"DIPOLE": "tab:blue", "PoWER": "tab:red"}
+ALGORITHMS = {"DIPOLE": "dipole", "DIPOLE (paper)": "dipole_paper", "PoWER": "power"}
+COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"}
 
 
 def make_optimizer(algo: str, task, n0: int, seed: int):
@@ -67,10 +67,10 @@ def make_optimizer(algo: str, task, n0: int, seed: int):
         theta0=task.theta0.double(),
         sigma_start=task.sigma_start.double(),
         n0=n0,
-        reward_range=tuple(task.reward_range),
+        reward_range=tuple(task.reward_range) if config.use_task_reward_range else None,
         generator=torch.Generator().manual_seed(seed),
     )
-    assert isinstance(optimizer, Dipole if algo == "DIPOLE" else Power)
+    assert isinstance(optimizer, Dipole if algo.startswith("DIPOLE") else Power)
     return optimizer
 
 

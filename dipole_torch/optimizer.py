@@ -3,14 +3,13 @@
 
 Both follow pycma's interface: ``ask()`` proposes policy parameters, the caller evaluates
 them however it likes (batched simulator, gymnasium env, real robot) and ``tell()`` reports
-the returns. Neither ever calls the task.
+the returns. Neither ever calls the task, and neither needs the range of the returns.
 
->>> opt = Dipole(torch.zeros(2), 0.5 * torch.eye(2), n0=10, reward_range=(-4.0, 0.0),
-...              generator=torch.Generator().manual_seed(0))
->>> for _ in range(60):
+>>> opt = Dipole(torch.zeros(2), 0.5 * torch.eye(2), generator=torch.Generator().manual_seed(0))
+>>> while opt.trials < 300:
 ...     theta = opt.ask()
-...     opt.tell(theta, -(theta - 1.0).pow(2).sum(-1).clamp(max=4.0))
->>> bool(opt.best()[1] > -0.05)
+...     opt.tell(theta, -100.0 * (theta - 1.0).pow(2).sum(-1))  # any units, no range
+>>> bool(opt.best()[1] > -1e-3)
 True
 """
 
@@ -35,6 +34,29 @@ from dipole_torch.reward import RewardScale, check_rewards
 from dipole_torch.sampling import draw
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
 
+RewardRange = tuple[float, float] | str | None
+PROBE = -2  # owner of a hill-valley probe row (a scout is −1)
+
+
+def make_reward_scale(reward_range: RewardRange, floor: float) -> RewardScale:
+    """``None``: adaptive (the kept returns' min–max); ``(low, high)``: fixed;
+    ``"positive"``: positive returns used as they are."""
+    if reward_range is None:
+        return RewardScale(floor=floor)
+    if isinstance(reward_range, str):
+        if reward_range != "positive":
+            raise ValueError(
+                f"reward_range must be None, (low, high) or 'positive', got {reward_range!r}"
+            )
+        return RewardScale(floor=floor, positive=True)
+    try:
+        low, high = reward_range
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"reward_range must be None, (low, high) or 'positive', got {reward_range!r}"
+        ) from None
+    return RewardScale(low, high, floor)
+
 
 class PolicySearch:
     """What DIPOLE and PoWER share: data, importance sets, the PoWER step, ask/tell
@@ -42,10 +64,17 @@ class PolicySearch:
 
     Internal maths run in float64 on ``theta0``'s device; ``ask`` returns ``theta0``'s dtype.
 
+    ``tell`` is transactional: if it raises, the optimizer is exactly as before the call.
+
     Attributes:
         trials: number of reward evaluations told so far (the x-axis of the paper's plots).
         iteration: number of tells after the initial batch.
-        last_rewards: ``[B]`` returns of the latest told batch (one per policy after the first).
+        last_rewards: ``[K]`` returns of the latest told batch's policy samples (one per
+            active policy; the whole batch after the first tell). Exploration samples that
+            belong to no policy (DIPOLE's scouts) are not in it.
+        thetas, rewards, owner: ``[N, D]``, ``[N]``, ``[N]`` the kept samples, their returns
+            and the policy owning each (−1: a scout that belongs to no policy yet).
+        active: ``[K]`` which policies are still sampled (DIPOLE retires converged ones).
     """
 
     def __init__(
@@ -54,15 +83,23 @@ class PolicySearch:
         sigma_start: Tensor,
         M: int = 5,
         n0: int | None = None,
-        reward_range: tuple[float, float] | None = None,
+        reward_range: RewardRange = None,
         reward_floor: float = 1e-3,
         generator: torch.Generator | None = None,
     ):
+        for name, value in (("theta0", theta0), ("sigma_start", sigma_start)):
+            if not isinstance(value, Tensor) or not value.is_floating_point():
+                raise TypeError(
+                    f"{name} must be a floating-point torch.Tensor, got "
+                    f"{getattr(value, 'dtype', type(value).__name__)}"
+                )
         check_matrix_shape(theta0, (-1,), "theta0")
         check_finite(theta0, "theta0")
         d = theta0.shape[0]
+        if d < 1:
+            raise ValueError("theta0 must have at least one parameter, got shape [0]")
         check_matrix_shape(sigma_start, (d, d), "sigma_start")
-        check_positive_definite(sigma_start, "sigma_start")
+        check_positive_definite(sigma_start.to(DTYPE), "sigma_start")
         if int(M) != M or M < 1:
             raise ValueError(f"M (importance-set size) must be a positive integer, got {M}")
         n0 = int(M) if n0 is None else n0
@@ -74,21 +111,38 @@ class PolicySearch:
         self.sigma_start = sigma_start.to(DTYPE)
         self.M = int(M)
         self.n0 = int(n0)
-        low, high = (None, None) if reward_range is None else reward_range
-        self.reward_scale = RewardScale(low, high, reward_floor)
-        self.generator = generator if generator is not None else torch.Generator(self.device)
+        self.reward_scale = make_reward_scale(reward_range, reward_floor)
+        if generator is None:
+            # Like torch's own samplers, an optimizer without a generator follows
+            # torch.manual_seed: it seeds its own generator from the global one.
+            generator = torch.Generator(self.device)
+            generator.manual_seed(int(torch.randint(0, 2**62, (1,))))
+        self.generator = generator
         # Samples kept so far (the union of the importance sets) and their owners.
         self.thetas = torch.empty(0, d, dtype=DTYPE, device=self.device)
         self.rewards = torch.empty(0, dtype=DTYPE, device=self.device)
         self.owner = torch.empty(0, dtype=torch.long, device=self.device)
         self.policy_means = self.theta0[None].clone()
         self.policy_covariances = self.sigma_start[None].clone()
+        self.active = torch.ones(1, dtype=torch.bool, device=self.device)
         self.trials = 0
         self.iteration = 0
+        self.policy_samples = 0  # trials spent on policy samples after the first batch
         self.last_rewards = torch.empty(0, dtype=DTYPE, device=self.device)
         self._best_theta = self.theta0.clone()
         self._best_reward = -math.inf
         self._pending: Tensor | None = None
+        self._pending_owner: Tensor | None = None
+        self.probe_rewards = torch.empty(0, dtype=DTYPE, device=self.device)
+        # Candidate policies waiting for their hill-valley probe (DIPOLE's default variant).
+        self.candidate_means = torch.empty(0, d, dtype=DTYPE, device=self.device)
+        self.candidate_covariances = torch.empty(0, d, d, dtype=DTYPE, device=self.device)
+        self.candidate_probes = torch.empty(0, d, dtype=DTYPE, device=self.device)
+        self.candidate_thresholds = torch.empty(0, dtype=DTYPE, device=self.device)
+        self.candidate_samples = torch.empty(0, d, dtype=DTYPE, device=self.device)
+        self.candidate_rewards = torch.empty(0, dtype=DTYPE, device=self.device)
+        self.pair_index = torch.empty(0, 2, dtype=torch.long, device=self.device)
+        self.pair_probes = torch.empty(0, d, dtype=DTYPE, device=self.device)
 
     # ------------------------------------------------------------------ ask / tell
     @property
@@ -107,28 +161,44 @@ class PolicySearch:
         """Policy parameters to evaluate next.
 
         Returns:
-            ``[n0, D]`` draws from N(θ0, Σ_start) on the first call; afterwards ``[K, D]``,
-            row k drawn from policy k's Gaussian. Asking again before telling discards the
-            previous proposal.
+            ``[n0, D]`` draws from N(θ0, Σ_start) on the first call; afterwards ``[B, D]``:
+            one row per active policy, drawn from its Gaussian, then any exploration rows
+            (see :attr:`asked_owner`). Asking again before telling discards the previous
+            proposal.
         """
         if not self.started:
             base = MultivariateNormal(self.theta0, covariance_matrix=self.sigma_start)
             theta = draw(base, (self.n0,), self.generator)
+            owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
         else:
-            policy = MultivariateNormal(
-                self.policy_means, covariance_matrix=self.policy_covariances, validate_args=False
-            )
-            theta = draw(policy, (), self.generator)
-        self._pending = theta
+            theta, owner = self._propose()
+        self._pending, self._pending_owner = theta, owner
         return theta.to(self.dtype)
+
+    @property
+    def asked_owner(self) -> Tensor | None:
+        """``[B]`` the policy each row of the pending ask belongs to (−1: exploration)."""
+        return self._pending_owner
+
+    def _propose(self) -> tuple[Tensor, Tensor]:
+        """One sample per active policy: ``([K_active, D], owners [K_active])``."""
+        index = self.active.nonzero().squeeze(-1)
+        if index.numel() == self.num_policies:
+            means, covs = self.policy_means, self.policy_covariances
+        else:
+            means, covs = self.policy_means[index], self.policy_covariances[index]
+        policy = MultivariateNormal(means, covariance_matrix=covs, validate_args=False)
+        return draw(policy, (), self.generator), index
 
     def tell(self, theta: Tensor, rewards: Tensor) -> None:
         """Report the returns of the parameters from the last :meth:`ask`.
 
         Args:
-            theta: ``[B, D]`` the asked parameters (row i belongs to policy i).
+            theta: ``[B, D]`` the asked parameters (row i as asked).
             rewards: ``[B]`` their returns; all finite (a NaN or inf raises before anything
-                changes) and inside ``reward_range`` when one was given.
+                changes), inside ``reward_range`` when a fixed one was given.
+
+        If anything raises, the optimizer is left exactly as it was before the call.
         """
         if self._pending is None:
             raise RuntimeError("tell() called without a preceding ask()")
@@ -136,19 +206,26 @@ class PolicySearch:
         check_finite(theta, "theta")
         rewards = check_rewards(torch.as_tensor(rewards), theta.shape[0]).to(self.device)
         self.reward_scale.validate(rewards)  # before any state changes
-        theta = theta.to(device=self.device, dtype=DTYPE)
+        snapshot = self.state_dict()
+        try:
+            self._tell(theta.to(device=self.device, dtype=DTYPE), rewards)
+        except BaseException:
+            self.load_state_dict(snapshot)
+            raise
+
+    def _tell(self, theta: Tensor, rewards: Tensor) -> None:
         first = not self.started
-        owner = (
-            torch.zeros(theta.shape[0], dtype=torch.long, device=self.device)
-            if first
-            else torch.arange(theta.shape[0], device=self.device)
-        )
-        self._pending = None
-        self.thetas = torch.cat((self.thetas, theta))
-        self.rewards = torch.cat((self.rewards, rewards))
-        self.owner = torch.cat((self.owner, owner))
+        owner = self._pending_owner
+        self._pending = self._pending_owner = None
+        self._before_append(owner, theta, rewards)
+        self.policy_samples += int((owner >= 0).sum()) if not first else 0
+        probe = owner == PROBE
+        self.probe_rewards = rewards[probe]
+        self.thetas = torch.cat((self.thetas, theta[~probe]))
+        self.rewards = torch.cat((self.rewards, rewards[~probe]))
+        self.owner = torch.cat((self.owner, owner[~probe]))
         self.trials += theta.shape[0]
-        self.last_rewards = rewards
+        self.last_rewards = rewards if first else rewards[owner >= 0]
         best = int(rewards.argmax())
         if float(rewards[best]) > self._best_reward:
             self._best_reward = float(rewards[best])
@@ -165,6 +242,10 @@ class PolicySearch:
         return self._best_theta.to(self.dtype), self._best_reward
 
     # ------------------------------------------------------------------ the PoWER step
+    def _weights(self, rewards: Tensor) -> Tensor:
+        """Reward weights in [floor, 1]; an adaptive scale spans the kept returns."""
+        return self.reward_scale.weights(rewards, reference=self.rewards)
+
     def _power_step(self) -> None:
         """Keep the best K·M samples overall, then eq. 7 for every policy on its best M."""
         # "keeping a fixed number of elements K·M at every iteration": a policy whose samples
@@ -173,12 +254,23 @@ class PolicySearch:
         top = min(self.num_policies * self.M, self.rewards.numel())
         overall[torch.topk(self.rewards, top).indices] = True
         self._keep(overall)
-        keep, index, valid = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
-        weights = self.reward_scale.weights(self.rewards)  # kept rewards: validated in tell
-        slot_weights = weights[index.clamp_min(0)] * valid
-        samples = self.thetas[index.clamp_min(0)]
-        self.policy_means = power_update(self.policy_means, samples, slot_weights)
-        self._keep(keep)
+        self._power_update_all()
+
+    def _power_update_all(self) -> None:
+        """Eq. 7 for every active policy on its best M samples; drops the other samples
+        that policies own (scouts, owner −1, are kept)."""
+        owned = (self.owner >= 0).nonzero().squeeze(-1)
+        keep, index, valid = importance_sets(
+            self.owner[owned], self.rewards[owned], self.num_policies, self.M
+        )
+        index = owned[index.clamp_min(0)]  # slots -> rows of the kept samples
+        weights = self._weights(self.rewards)
+        slot_weights = weights[index] * valid
+        means = power_update(self.policy_means, self.thetas[index], slot_weights)
+        self.policy_means = torch.where(self.active[:, None], means, self.policy_means)
+        mask = self.owner < 0
+        mask[owned[keep]] = True
+        self._keep(mask)
 
     def _keep(self, mask: Tensor) -> None:
         self.thetas, self.rewards, self.owner = (
@@ -186,6 +278,9 @@ class PolicySearch:
             self.rewards[mask],
             self.owner[mask],
         )
+
+    def _before_append(self, owner: Tensor, theta: Tensor, rewards: Tensor) -> None:
+        pass
 
     def _after_initial_batch(self) -> None:
         keep, _, _ = importance_sets(self.owner, self.rewards, 1, self.M)
@@ -205,10 +300,35 @@ class PolicySearch:
 
     def _policy_weights(self) -> Tensor:
         """``[K]`` number of kept samples each policy owns (at least 1)."""
-        return torch.bincount(self.owner, minlength=self.num_policies).to(DTYPE).clamp_min(1.0)
+        owned = self.owner[self.owner >= 0]
+        return torch.bincount(owned, minlength=self.num_policies).to(DTYPE).clamp_min(1.0)
+
+    @property
+    def policy_best_rewards(self) -> Tensor:
+        """``[K]`` the best return among each policy's kept samples (−inf: none)."""
+        best = torch.full((self.num_policies,), -math.inf, dtype=DTYPE, device=self.device)
+        owned = self.owner >= 0
+        return best.scatter_reduce(0, self.owner[owned], self.rewards[owned], "amax")
 
     # ------------------------------------------------------------------ checkpoints
-    _TENSORS = ("thetas", "rewards", "owner", "policy_means", "policy_covariances", "last_rewards")
+    _TENSORS = (
+        "thetas",
+        "rewards",
+        "owner",
+        "policy_means",
+        "policy_covariances",
+        "active",
+        "last_rewards",
+        "probe_rewards",
+        "candidate_means",
+        "candidate_covariances",
+        "candidate_probes",
+        "candidate_thresholds",
+        "candidate_samples",
+        "candidate_rewards",
+        "pair_index",
+        "pair_probes",
+    )
 
     def state_dict(self) -> dict:
         """Everything needed to continue the run exactly, generator state included."""
@@ -216,9 +336,11 @@ class PolicySearch:
         state.update(
             trials=self.trials,
             iteration=self.iteration,
+            policy_samples=self.policy_samples,
             best_theta=self._best_theta.clone(),
             best_reward=self._best_reward,
             pending=None if self._pending is None else self._pending.clone(),
+            pending_owner=None if self._pending_owner is None else self._pending_owner.clone(),
             generator=self.generator.get_state(),
             kind=type(self).__name__,
         )
@@ -233,9 +355,12 @@ class PolicySearch:
             setattr(self, name, state[name].to(self.device))
         self.trials = int(state["trials"])
         self.iteration = int(state["iteration"])
+        self.policy_samples = int(state["policy_samples"])
         self._best_theta = state["best_theta"].to(self.device)
         self._best_reward = float(state["best_reward"])
         self._pending = None if state["pending"] is None else state["pending"].to(self.device)
+        owner = state["pending_owner"]
+        self._pending_owner = None if owner is None else owner.to(self.device)
         self.generator.set_state(state["generator"])
 
 
@@ -255,12 +380,14 @@ class Power(PolicySearch):
         sigma_start: ``[D, D]`` exploration covariance Σ.
         M: importance-set size (paper: 5).
         n0: initial samples (default M).
-        reward_range: ``(low, high)`` of the returns, mapped to weights in [floor, 1] by
-            :class:`dipole_torch.RewardScale`; ``None`` if returns are already positive.
+        reward_range: ``None`` (default): returns mapped to weights in [floor, 1] by the
+            min–max of the kept returns; ``(low, high)``: a fixed map; ``"positive"``:
+            positive returns used as weights (see :class:`dipole_torch.RewardScale`).
         reward_floor: smallest reward weight.
         exploration_decay: per-iteration factor on the covariance, in (0, 1].
         min_exploration: floor of that factor, in (0, 1].
-        generator: ``torch.Generator`` for every draw.
+        generator: ``torch.Generator`` for every draw (default: seeded from torch's global
+            generator).
     """
 
     def __init__(
@@ -269,7 +396,7 @@ class Power(PolicySearch):
         sigma_start: Tensor,
         M: int = 5,
         n0: int | None = None,
-        reward_range: tuple[float, float] | None = None,
+        reward_range: RewardRange = None,
         reward_floor: float = 1e-3,
         exploration_decay: float = 1.0,
         min_exploration: float = 1e-2,
@@ -292,13 +419,53 @@ class Power(PolicySearch):
 class Dipole(PolicySearch):
     """DIPOLE (Algorithm 2): PoWER on every component of a reward-weighted DP mixture.
 
-    * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per policy, from
-      the θ-block of its component covariance (the automatic exploration adaptation).
-    * ``tell()``: the best K·M samples are kept overall, then a PoWER step (eq. 7) per policy
-      on its best M of them (a policy left without samples keeps its mean, and disappears at
-      the next clustering); after the initial batch and every ``cluster_every`` iterations,
-      a weighted DP clustering (eq. 6, Neal's Algorithm 8) of the kept samples, augmented
-      with their reward weights y = [θ, w], redefines the policies.
+    * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per active policy
+      from its exploration Gaussian, and every ``cluster_every`` iterations ``explore``
+      scouts from N(θ0, Σ_start) that belong to no policy yet.
+    * ``tell()``: a PoWER step (eq. 7) per policy on its best M samples; after the initial
+      batch and every ``cluster_every`` iterations, a weighted DP clustering (eq. 6, Neal's
+      Algorithm 8) of the kept samples, augmented with their reward weights y = [θ, w],
+      redefines the policies.
+
+    Two variants share this class (``Dipole.paper(...)`` builds the paper's):
+
+    ============================  ==========================  ==============================
+    option                        default                     the paper (``Dipole.paper``)
+    ============================  ==========================  ==============================
+    ``reward_range``              ``None``: min–max of the    a fixed ``(low, high)``
+                                  kept returns (any units)
+    ``importance``                ``"policy"``: every policy  ``"global"``: the best K·M
+                                  keeps its own best M        samples overall
+    ``exploration``               ``"success"``: each policy  ``"clustering"``: the θ-block
+                                  scales its covariance by    of its DP component's
+                                  its success rate            posterior covariance
+    ``explore``                   scouts per clustering       0
+    ``max_policies``              active policies at most     no limit
+    ``retire_std``                stop sampling a converged   0 (never)
+                                  policy
+    ``merge_radius``              drop duplicate policies     0 (never)
+    ============================  ==========================  ==============================
+
+    Why the default differs (numbers in the README, ``benchmarks/bench_multioptima.py``):
+
+    * With ``importance="global"`` a policy on an optimum as good as the others' disappears
+      as soon as its latest samples are a little worse than theirs; per-policy importance
+      sets keep every optimum found.
+    * With ``exploration="clustering"`` a component's covariance is the posterior mean
+      (Ψ0 + S)/(ν0 + n − p − 1) of a handful of points: Ψ0 keeps it near Σ_start and the
+      policies never converge. ``"success"`` keeps a policy's covariance from clustering to
+      clustering and multiplies it after every sample by exp((p̄ − p_t) / (d (1 − p_t)))²,
+      where p̄ is the policy's running rate of samples that beat its best kept sample (the
+      1/5th success rule of the (1+1)-CMA-ES, Igel, Suttorp & Hansen 2006: p_t = 2/11,
+      smoothing 1/12, damping d = 1 + D/2). Exploration then shrinks geometrically near an
+      optimum and grows on a slope. A new component starts from the DP posterior covariance.
+    * Scouts let the clustering find optima after the first n0 samples: a scout that the
+      DP puts in a component of its own becomes a new policy (while fewer than
+      ``max_policies`` are active); policies whose samples the DP merges become one.
+    * A policy whose exploration std has shrunk below ``retire_std`` times Σ_start's is
+      retired: it stays among :attr:`policies` but is no longer sampled, so its trials go to
+      the others. An active policy closer than ``merge_radius`` exploration stds to another
+      (both ways) or to a retired one is a duplicate and is dropped.
 
     Args:
         theta0: ``[D]`` initial policy.
@@ -310,31 +477,41 @@ class Dipole(PolicySearch):
         cluster_every: iterations between clusterings (paper: "every M steps"; default M).
         sweeps: Gibbs sweeps per clustering, warm-started from the current policies.
         initial_sweeps: Gibbs sweeps of the first clustering (from one component).
-        reward_range: ``(low, high)`` of the returns; see :class:`dipole_torch.RewardScale`.
+        reward_range: ``None``, ``(low, high)`` or ``"positive"``; see
+            :class:`dipole_torch.RewardScale`.
         reward_floor: smallest reward weight.
-        regularization: covariance regularisation, as a fraction of the diagonal of the
-            initial exploration covariance, added to every component covariance (default
-            0.01: exploration never shrinks below 10 % of the initial standard deviation).
-        prior_df: ν0 of the inverse-Wishart prior (see below).
+        regularization: covariance regularisation of the DP components, as a fraction of the
+            diagonal of Σ_start (default 0.01).
         reward_weighted: use eq. 6 (``True``) or plain eq. 5 (an ablation).
-        generator: ``torch.Generator`` for every draw.
+        prior_df: ν0 of the inverse-Wishart prior (see below).
+        importance: ``"policy"`` or ``"global"`` (see the table).
+        exploration: ``"success"`` or ``"clustering"``.
+        explore: scouts asked once per clustering period (≥ 0).
+        max_policies: most active policies, or ``None`` for no limit.
+        retire_std: relative exploration std below which a policy is retired (0: never).
+        merge_radius: duplicate distance in exploration stds (0: never merge).
+        generator: ``torch.Generator`` for every draw (default: seeded from torch's global
+            generator).
 
     Choices where the paper is silent:
         * The prior H is built at the first clustering from the exploration distribution:
-          μ0 = [θ0, mean w], Σ0 = E[Σ] = blockdiag(Σ_start, var w) (var w floored at 0.01),
-          ν0 = ``prior_df`` (default D + 3 = p + 2 for the p = D + 1 dimensions of y: the
-          weakest inverse-Wishart prior with a finite mean, so that a component's
-          exploration covariance follows its few samples as fast as possible; measured against
-          D + 4 over 4–12 seeds: viapoint mean best 0.951 vs 0.939 and 2.5 vs 1.75 routes a
-          run, cart-pole average-policy return ~790 vs ~560, toy task 2.75 vs 3.4 optima).
-          It is carried from
-          clustering to clustering, updated after every sweep
+          μ0 = [θ0, mean w], Σ0 = E[Σ] = blockdiag(Σ_start, var w) (var w floored at 1 % of
+          the largest weight squared), ν0 = ``prior_df`` (default D + 3 = p + 2 for the
+          p = D + 1 dimensions of y: the weakest inverse-Wishart prior with a finite mean).
+          It is carried from clustering to clustering, updated after every sweep
           (:meth:`NormalInverseWishartPrior.updated`).
         * A clustering ends with the conditional posterior means of the last Gibbs state
-          (:func:`dipole_torch.dp_mixture.posterior_point_estimate`): its θ-means become the
-          policies, its θ-block covariances their exploration noise.
+          (:func:`dipole_torch.dp_mixture.posterior_point_estimate`); in the paper's variant
+          its θ-means become the policies and its θ-block covariances their exploration
+          noise. In the default variant a component that holds most of an existing policy's
+          samples continues that policy (its mean and exploration); other components become
+          new policies at the eq. 7 average of their samples with the posterior covariance.
         * r_c in eq. 6 is E[w | θ = μ_c^θ] under the mixture at the start of each sweep.
     """
+
+    # (1+1)-CMA-ES success rule (Igel, Suttorp & Hansen 2006).
+    TARGET_SUCCESS = 2.0 / 11.0
+    SUCCESS_SMOOTHING = 1.0 / 12.0
 
     def __init__(
         self,
@@ -347,11 +524,18 @@ class Dipole(PolicySearch):
         cluster_every: int | None = None,
         sweeps: int = 5,
         initial_sweeps: int = 20,
-        reward_range: tuple[float, float] | None = None,
+        reward_range: RewardRange = None,
         reward_floor: float = 1e-3,
         regularization: float = 1e-2,
         reward_weighted: bool = True,
         prior_df: float | None = None,
+        importance: str = "policy",
+        exploration: str = "success",
+        explore: float = 0.1,
+        max_policies: int | None = 8,
+        retire_std: float = 1e-3,
+        merge_radius: float = 1.0,
+        hill_valley: bool = True,
         generator: torch.Generator | None = None,
     ):
         super().__init__(
@@ -363,8 +547,8 @@ class Dipole(PolicySearch):
             reward_floor,
             generator,
         )
-        if not alpha > 0:
-            raise ValueError(f"alpha (DP concentration) must be positive, got {alpha}")
+        if not (isinstance(alpha, int | float) and math.isfinite(alpha) and alpha > 0):
+            raise ValueError(f"alpha (DP concentration) must be positive and finite, got {alpha}")
         if int(m) != m or m < 1:
             raise ValueError(f"m (auxiliary components) must be a positive integer, got {m}")
         cluster_every = self.M if cluster_every is None else cluster_every
@@ -375,8 +559,19 @@ class Dipole(PolicySearch):
         ):
             if int(value) != value or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value}")
-        if not regularization >= 0:
+        if not (math.isfinite(regularization) and regularization >= 0):
             raise ValueError(f"regularization must be non-negative, got {regularization}")
+        if importance not in ("policy", "global"):
+            raise ValueError(f"importance must be 'policy' or 'global', got {importance!r}")
+        if exploration not in ("success", "clustering"):
+            raise ValueError(f"exploration must be 'success' or 'clustering', got {exploration!r}")
+        if not (math.isfinite(explore) and 0 <= explore <= 1):
+            raise ValueError(f"explore must lie in [0, 1], got {explore}")
+        if max_policies is not None and (int(max_policies) != max_policies or max_policies < 1):
+            raise ValueError(f"max_policies must be a positive integer or None, got {max_policies}")
+        for name, value in (("retire_std", retire_std), ("merge_radius", merge_radius)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be non-negative and finite, got {value}")
         self.alpha = float(alpha)
         self.m = int(m)
         self.cluster_every = int(cluster_every)
@@ -387,20 +582,145 @@ class Dipole(PolicySearch):
         self.prior_df = float(self.dim + 3 if prior_df is None else prior_df)
         if not self.prior_df > self.dim + 2:
             raise ValueError(f"prior_df must exceed D + 2 = {self.dim + 2}, got {prior_df}")
+        self.importance = importance
+        self.exploration = exploration
+        self.explore = float(explore)
+        self.max_policies = None if max_policies is None else int(max_policies)
+        self.retire_std = float(retire_std)
+        self.merge_radius = float(merge_radius)
+        self.hill_valley = bool(hill_valley)
+        self.success = torch.full((1,), self.TARGET_SUCCESS, dtype=DTYPE, device=self.device)
+        self.paths = torch.zeros(1, self.dim, dtype=DTYPE, device=self.device)
+        self.clusterings_skipped = 0  # clusterings that failed numerically (see _cluster)
         self.initial_prior: NormalInverseWishartPrior | None = None
         self.dp_state: DPMixtureState | None = None
 
+    @classmethod
+    def paper(
+        cls,
+        theta0: Tensor,
+        sigma_start: Tensor,
+        reward_range: RewardRange = "positive",
+        **kwargs,
+    ) -> Dipole:
+        """DIPOLE exactly as in the paper: the best K·M samples kept overall, exploration from
+        the DP posterior, no scouts, no retirement, no merging, a fixed reward range
+        (``"positive"``: positive returns used as they are). Other options as ``Dipole``."""
+        paper = dict(
+            importance="global",
+            exploration="clustering",
+            explore=0,
+            max_policies=None,
+            retire_std=0.0,
+            merge_radius=0.0,
+            hill_valley=False,
+        )
+        return cls(theta0, sigma_start, reward_range=reward_range, **(paper | kwargs))
+
+    @property
+    def is_paper_variant(self) -> bool:
+        return self.importance == "global" and self.exploration == "clustering"
+
+    # ------------------------------------------------------------------ ask
+    def _propose(self) -> tuple[Tensor, Tensor]:
+        theta, owner = (
+            super()._propose() if bool(self.active.any()) else (self.thetas[:0], self.owner[:0])
+        )
+        scouts = self._scouts_next()
+        if scouts:
+            base = MultivariateNormal(self.theta0, covariance_matrix=self.sigma_start)
+            extra = draw(base, (scouts,), self.generator)
+            theta = torch.cat((theta, extra))
+            owner = torch.cat((owner, torch.full_like(extra[:, 0], -1, dtype=torch.long)))
+        probes = torch.cat((self.candidate_probes, self.pair_probes[: self.pair_index.shape[0]]))
+        if probes.shape[0]:
+            theta = torch.cat((theta, probes))
+            owner = torch.cat((owner, torch.full_like(probes[:, 0], PROBE, dtype=torch.long)))
+        return theta, owner
+
+    def _scouts_next(self) -> int:
+        """Scouts in the next ask: ``explore`` per policy sample on average; a fresh ``n0``
+        when every policy has been retired (a restart)."""
+        active = int(self.active.sum())
+        if active == 0:
+            return self.n0 if self.explore > 0 else 0
+        after = self.policy_samples + active
+        return math.floor(self.explore * after) - math.floor(self.explore * self.policy_samples)
+
+    # ------------------------------------------------------------------ tell
+    def _before_append(self, owner: Tensor, theta: Tensor, rewards: Tensor) -> None:
+        """Exploration that follows each policy's own samples, as in the (1+1)-CMA-ES
+        (Igel, Suttorp & Hansen 2006): a sample succeeds when it beats its policy's best kept
+        one. A success moves the policy's evolution path p towards the step x − μ and adds
+        the rank-one term c_cov p pᵀ to its covariance; the success rate p̄ scales the
+        covariance by exp((p̄ − p_t) / (d (1 − p_t)))²."""
+        if self.exploration != "success" or not self.started:
+            return
+        rows = owner >= 0
+        policy = owner[rows]
+        succeeded = rewards[rows] > self.policy_best_rewards[policy]
+        d = self.dim
+        c_c, c_cov = 2.0 / (d + 2.0), 2.0 / (d * d + 6.0)
+        step = theta[rows] - self.policy_means[policy]
+        paths = self.paths[policy]
+        paths = torch.where(
+            succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
+        )
+        covs = self.policy_covariances[policy]
+        rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
+        covs = torch.where(succeeded[:, None, None], rank_one, covs)
+        c = self.SUCCESS_SMOOTHING
+        success = (1 - c) * self.success[policy] + c * succeeded.to(DTYPE)
+        p_t = self.TARGET_SUCCESS
+        factor = torch.exp((success - p_t) / ((1.0 + d / 2.0) * (1 - p_t)))
+        # Never explore wider than Σ_start: a policy that keeps failing while it grows
+        # would otherwise turn into random search.
+        relative = self._relative_std(covs)
+        factor = torch.minimum(factor, 1.0 / relative.clamp_min(1e-300))
+        self.paths, self.success = self.paths.clone(), self.success.clone()
+        self.policy_covariances = self.policy_covariances.clone()
+        self.paths[policy] = paths
+        self.success[policy] = success
+        self.policy_covariances[policy] = covs * factor[:, None, None] ** 2
+
+    def _power_step(self) -> None:
+        if self.importance == "global":
+            super()._power_step()
+        else:
+            self._power_update_all()
+
+    def _after_iteration(self) -> None:
+        if self.is_paper_variant:
+            if self.iteration % self.cluster_every == 0:
+                self._cluster_paper()
+            return
+        self._judge_candidates()
+        restart = not bool(self.active.any())
+        clustered = restart or self.iteration % self.cluster_every == 0
+        if clustered:
+            self._cluster()
+        self._retire_and_merge()
+        self._probe_candidates()
+        if clustered and self.hill_valley and (self.iteration // self.cluster_every) % 4 == 0:
+            self._probe_pairs()
+
     # ------------------------------------------------------------------ clustering
-    def _augmented(self) -> Tensor:
-        """``[N, D + 1]`` the kept samples as y = [θ, w]."""
-        return torch.cat((self.thetas, self.reward_scale.weights(self.rewards)[:, None]), dim=1)
+    def _augmented(self, rows: Tensor | None = None) -> Tensor:
+        """``[N, D + 1]`` the kept samples (or ``rows`` of them) as y = [θ, w]."""
+        w = self._weights(self.rewards)
+        if rows is not None:
+            return torch.cat((self.thetas[rows], w[rows, None]), dim=1)
+        return torch.cat((self.thetas, w[:, None]), dim=1)
 
     def _after_initial_batch(self) -> None:
         y = self._augmented()
         w = y[:, -1]
         var_w = float(w.var()) if w.numel() > 1 else 0.0
         mean = torch.cat((self.theta0, w.mean()[None]))
-        reward_variance = torch.tensor([[max(var_w, 1e-2)]], dtype=DTYPE, device=self.device)
+        # Floor the prior's reward variance relative to the weights' own scale (positive
+        # returns used as weights may be of any order).
+        floor = 1e-2 * float(w.abs().max()) ** 2
+        reward_variance = torch.tensor([[max(var_w, floor)]], dtype=DTYPE, device=self.device)
         cov = torch.block_diag(self.sigma_start, reward_variance)
         self.initial_prior = NormalInverseWishartPrior.from_exploration(
             mean, cov, df=self.prior_df, regularization=self.regularization
@@ -416,11 +736,7 @@ class Dipole(PolicySearch):
         )
         self._adopt(y, state)
 
-    def _after_iteration(self) -> None:
-        if self.iteration % self.cluster_every == 0:
-            self._cluster()
-
-    def _cluster(self) -> None:
+    def _cluster_paper(self) -> None:
         """Weighted DP clustering of the kept samples, warm-started from the policies."""
         y = self._augmented()
         assert self.dp_state is not None and self.initial_prior is not None
@@ -451,26 +767,341 @@ class Dipole(PolicySearch):
         self.policy_means = state.means[:, :d].clone()
         self.policy_covariances = state.covariances[:, :d, :d].clone()
         self.owner = state.labels.clone()
+        k = state.num_components
+        self.active = torch.ones(k, dtype=torch.bool, device=self.device)
+        self.success = torch.full((k,), self.TARGET_SUCCESS, dtype=DTYPE, device=self.device)
+        self.paths = torch.zeros(k, d, dtype=DTYPE, device=self.device)
+        if not self.is_paper_variant and self.max_policies is not None:
+            best = self.policy_best_rewards
+            dropped = torch.argsort(best, descending=True, stable=True)[self.max_policies :]
+            if dropped.numel():
+                self._remove_policies(dropped)
         keep, _, _ = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
         self._keep(keep)
+
+    def _cluster(self) -> None:
+        """The default variant's clustering: the samples of the active policies and the
+        scouts, warm-started with one component per active policy and one per scout.
+
+        A component continues the old policy that owns most of its samples (matched
+        greedily, largest overlap first); the others become new policies, the best first,
+        while fewer than ``max_policies`` are active. Old policies left without a component
+        were merged by the DP and are dropped.
+        """
+        assert self.dp_state is not None and self.initial_prior is not None
+        rows = ((self.owner < 0) | self.active[self.owner.clamp_min(0)]).nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            return
+        y = self._augmented(rows)
+        old = self.owner[rows]
+        policies = self.active.nonzero().squeeze(-1)
+        compact = torch.full((self.num_policies,), -1, dtype=torch.long, device=self.device)
+        compact[policies] = torch.arange(policies.numel(), device=self.device)
+        scouts = old < 0
+        start_labels = compact[old.clamp_min(0)]
+        start_labels[scouts] = policies.numel() + torch.arange(
+            int(scouts.sum()), device=self.device
+        )
+        try:
+            start = DPMixtureState.from_labels(y, start_labels, self.dp_state.prior)
+            state = fit_dp_mixture(
+                y,
+                self.initial_prior,
+                self.sweeps,
+                self.alpha,
+                self.m,
+                self.reward_weighted,
+                self.generator,
+                state=start,
+            )
+            state = posterior_point_estimate(y, state)
+        except torch.linalg.LinAlgError:
+            # Converged policies' samples can make a component's covariance numerically
+            # singular in float64. A run that goes well must not stop: skip this clustering
+            # (the policies go on with their own exploration) and forget the scouts.
+            self.clusterings_skipped += 1
+            self._keep(self.owner >= 0)
+            return
+        self.dp_state = state
+        labels = state.labels
+        k_new = state.num_components
+        # overlap[c, j]: samples of old active policy j in component c.
+        overlap = torch.zeros(k_new, policies.numel(), dtype=torch.long, device=self.device)
+        owned = ~scouts
+        overlap.index_put_(
+            (labels[owned], compact[old[owned]]),
+            torch.ones_like(labels[owned]),
+            accumulate=True,
+        )
+        continues = torch.full((k_new,), -1, dtype=torch.long, device=self.device)
+        remaining = overlap.clone()
+        while bool((remaining > 0).any()):
+            flat = int(remaining.argmax())
+            c, j = divmod(flat, remaining.shape[1])
+            continues[c] = int(policies[j])
+            remaining[c] = 0
+            remaining[:, j] = 0
+        # New components, best sample first, while there is room.
+        fresh = (continues < 0).nonzero().squeeze(-1)
+        component_best = torch.full((k_new,), -math.inf, dtype=DTYPE, device=self.device)
+        component_best = component_best.scatter_reduce(0, labels, self.rewards[rows], "amax")
+        fresh = fresh[torch.argsort(component_best[fresh], descending=True, stable=True)]
+        retired = int((~self.active).sum())
+        room = (
+            fresh.numel()
+            if self.max_policies is None
+            else max(self.max_policies - int((continues >= 0).sum()), 0)
+        )
+        fresh = fresh[:room]
+        # Assemble the policies: retired ones, continued ones, then new ones.
+        keep_old = torch.cat(((~self.active).nonzero().squeeze(-1), continues[continues >= 0]))
+        new_index = torch.full((self.num_policies,), -1, dtype=torch.long, device=self.device)
+        new_index[keep_old] = torch.arange(keep_old.numel(), device=self.device)
+        d = self.dim
+        weights = y[:, -1]
+        new_means, new_covs = [], []
+        component_policy = torch.full((k_new,), -1, dtype=torch.long, device=self.device)
+        component_policy[continues >= 0] = new_index[continues[continues >= 0]]
+        vet = self.hill_valley and keep_old.numel() > 0
+        candidates = []
+        for c in fresh.tolist():
+            members = labels == c
+            w = weights[members]
+            mean = (w[:, None] * y[members, :d]).sum(0) / w.sum()
+            if vet:
+                # Its best sample, to be compared with the nearest policy's (see
+                # _probe_candidates); its samples leave the data meanwhile.
+                best = int(torch.where(members, self.rewards[rows], -math.inf).argmax())
+                candidates.append(
+                    (mean, state.covariances[c, :d, :d], y[best, :d], self.rewards[rows][best])
+                )
+                continue
+            component_policy[c] = keep_old.numel() + len(new_means)
+            new_means.append(mean)
+            new_covs.append(state.covariances[c, :d, :d])
+        if candidates:
+            self._add_candidates(candidates)
+        means = self.policy_means[keep_old]
+        covs = self.policy_covariances[keep_old]
+        success = self.success[keep_old]
+        paths = self.paths[keep_old]
+        active = torch.cat(
+            (
+                torch.zeros(retired, dtype=torch.bool, device=self.device),
+                torch.ones(
+                    keep_old.numel() - retired + len(new_means),
+                    dtype=torch.bool,
+                    device=self.device,
+                ),
+            )
+        )
+        if new_means:
+            means = torch.cat((means, torch.stack(new_means)))
+            covs = torch.cat((covs, torch.stack(new_covs)))
+            success = torch.cat(
+                (
+                    success,
+                    torch.full(
+                        (len(new_means),), self.TARGET_SUCCESS, dtype=DTYPE, device=self.device
+                    ),
+                )
+            )
+        # Re-own the samples: retired policies' stay, clustered ones follow their component
+        # (a component that became no policy loses its samples).
+        owner = new_index[self.owner.clamp_min(0)]
+        owner[rows] = component_policy[labels]
+        keep_rows = owner >= 0
+        self.policy_means, self.policy_covariances = means, covs
+        self.success, self.active = success, active
+        self.paths = torch.cat((paths, paths.new_zeros(len(new_means), d)))
+        self.owner = owner
+        self._keep(keep_rows)
+        keep, _, _ = importance_sets(self.owner, self.rewards, self.num_policies, self.M)
+        self._keep(keep)
+
+    # ------------------------------------------------------------------ new optima
+    def _add_candidates(self, candidates: list[tuple[Tensor, Tensor, Tensor, Tensor]]) -> None:
+        """Queue new components ``(mean [D], covariance [D, D], best sample [D], its return)``
+        for the hill-valley test."""
+        means, covs, samples, rewards = (torch.stack(x) for x in zip(*candidates, strict=True))
+        self.candidate_means = torch.cat((self.candidate_means, means))
+        self.candidate_covariances = torch.cat((self.candidate_covariances, covs))
+        self.candidate_samples = torch.cat((self.candidate_samples, samples))
+        self.candidate_rewards = torch.cat((self.candidate_rewards, rewards))
+
+    def _policy_best_samples(self) -> Tensor:
+        """``[K, D]`` each policy's best kept sample (its mean where it has none)."""
+        best = self.policy_means.clone()
+        owned = (self.owner >= 0).nonzero().squeeze(-1)
+        order = owned[torch.argsort(self.rewards[owned], stable=True)]
+        best[self.owner[order]] = self.thetas[order]  # ascending: the best is written last
+        return best
+
+    def _probe_candidates(self) -> None:
+        """The hill-valley test (Ursem 1999; Maree et al. 2018) of each queued candidate
+        against the policy nearest to it: the midpoint between the candidate's best sample
+        and that policy's best sample is evaluated at the next ask. A midpoint worse than
+        both ends shows a valley between them, so the candidate sits on another optimum."""
+        c = self.candidate_means.shape[0]
+        if c == 0:
+            return
+        if self.num_policies == 0:
+            self._accept_candidates(torch.ones(c, dtype=torch.bool, device=self.device))
+            return
+        partners = self._policy_best_samples()
+        scale = self.sigma_start.diagonal().sqrt()
+        distance = torch.cdist(self.candidate_samples / scale, partners / scale)  # [C, K]
+        nearest = distance.argmin(-1)
+        self.candidate_probes = 0.5 * (self.candidate_samples + partners[nearest])
+        self.candidate_thresholds = torch.minimum(
+            self.candidate_rewards, self.policy_best_rewards[nearest]
+        )
+
+    def _probe_pairs(self) -> None:
+        """Queue a hill-valley probe between every active policy and the policy nearest to
+        it (after each clustering): two policies on one hill are one optimum."""
+        if self.num_policies < 2 or not bool(self.active.any()):
+            self.pair_index = self.pair_index[:0]
+            return
+        best = self._policy_best_samples()
+        scale = self.sigma_start.diagonal().sqrt()
+        distance = torch.cdist(best / scale, best / scale)
+        distance.fill_diagonal_(math.inf)
+        a = self.active.nonzero().squeeze(-1)
+        b = distance[a].argmin(-1)
+        pairs = torch.stack((torch.minimum(a, b), torch.maximum(a, b)), -1).unique(dim=0)
+        self.pair_index = pairs
+        self.pair_probes = 0.5 * (best[pairs[:, 0]] + best[pairs[:, 1]])
+
+    def _judge_pairs(self, probe_rewards: Tensor) -> None:
+        """Drop the worse policy of each probed pair that shows no valley between them (a
+        retired policy is never dropped for an active one)."""
+        if self.pair_index.shape[0] == 0:
+            return
+        best = self.policy_best_rewards
+        a, b = self.pair_index[:, 0], self.pair_index[:, 1]
+        same_hill = probe_rewards >= torch.minimum(best[a], best[b])
+        # The one to drop: an active one beside a retired one, else the worse one.
+        drop_b = torch.where(self.active[a] != self.active[b], self.active[b], best[b] < best[a])
+        loser = torch.where(drop_b, b, a)[same_hill]
+        self.pair_index = self.pair_index[:0]
+        if loser.numel():
+            self._remove_policies(loser.unique())
+
+    def _judge_candidates(self) -> None:
+        """Accept the candidates whose probe found a valley; forget the others. Then judge
+        the probed pairs of policies."""
+        n = self.candidate_probes.shape[0]
+        pair_rewards = self.probe_rewards[n:]
+        if n:
+            self._accept_candidates(self.probe_rewards[:n] < self.candidate_thresholds)
+        self._judge_pairs(pair_rewards)
+
+    def _accept_candidates(self, accept: Tensor) -> None:
+        """New policies from the ``accept``-ed candidates (within ``max_policies``); the
+        candidate queue is emptied."""
+        index = accept.nonzero().squeeze(-1)
+        if self.max_policies is not None:
+            room = max(self.max_policies - int(self.active.sum()), 0)
+            index = index[torch.argsort(self.candidate_rewards[index], descending=True)][:room]
+        n = index.numel()
+        if n:
+            k = self.num_policies
+            self.policy_means = torch.cat((self.policy_means, self.candidate_means[index]))
+            self.policy_covariances = torch.cat(
+                (self.policy_covariances, self.candidate_covariances[index])
+            )
+            self.active = torch.cat((self.active, self.active.new_ones(n)))
+            self.paths = torch.cat((self.paths, self.paths.new_zeros(n, self.dim)))
+            self.success = torch.cat(
+                (self.success, self.success.new_full((n,), self.TARGET_SUCCESS))
+            )
+            self.thetas = torch.cat((self.thetas, self.candidate_samples[index]))
+            self.rewards = torch.cat((self.rewards, self.candidate_rewards[index]))
+            self.owner = torch.cat((self.owner, k + torch.arange(n, device=self.device)))
+        empty = self.candidate_means[:0]
+        self.candidate_means, self.candidate_samples, self.candidate_probes = empty, empty, empty
+        self.candidate_covariances = self.candidate_covariances[:0]
+        self.candidate_rewards = self.candidate_rewards[:0]
+        self.candidate_thresholds = self.candidate_thresholds[:0]
+
+    # ------------------------------------------------------------------ retire and merge
+    def _relative_std(self, covariances: Tensor | None = None) -> Tensor:
+        """``[K]`` each policy's largest exploration std relative to Σ_start's, per axis."""
+        covs = self.policy_covariances if covariances is None else covariances
+        ratio = covs.diagonal(dim1=-2, dim2=-1) / self.sigma_start.diagonal()
+        return ratio.amax(-1).sqrt()
+
+    def _retire_and_merge(self) -> None:
+        if self.retire_std > 0:
+            self.active = self.active & (self._relative_std() >= self.retire_std)
+        if self.merge_radius <= 0 or self.num_policies < 2:
+            return
+        # Mahalanobis distance of policy b's mean under policy a's exploration: [K, K].
+        diff = self.policy_means[None, :, :] - self.policy_means[:, None, :]
+        chol = torch.linalg.cholesky(self.policy_covariances)
+        z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
+        distance = z.square().sum(-2).sqrt()  # [a, b]: under a's covariance
+        near = distance < self.merge_radius
+        best = self.policy_best_rewards
+        drop = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
+        for a in self.active.nonzero().squeeze(-1).tolist():
+            for b in range(self.num_policies):
+                if a == b or drop[b] or drop[a]:
+                    continue
+                if not self.active[b]:
+                    duplicate = bool(near[a, b])  # a explores a retired optimum
+                else:
+                    duplicate = bool(near[a, b] and near[b, a])
+                    # Of two active duplicates the worse one goes.
+                    if duplicate and best[a] > best[b]:
+                        drop[b] = True
+                        continue
+                if duplicate:
+                    drop[a] = True
+        if drop.any():
+            self._remove_policies(drop.nonzero().squeeze(-1))
+
+    def _remove_policies(self, index: Tensor) -> None:
+        """Drop policies ``index`` and their samples; renumber the others."""
+        keep = torch.ones(self.num_policies, dtype=torch.bool, device=self.device)
+        keep[index] = False
+        new_index = torch.cumsum(keep.long(), 0) - 1
+        rows = (self.owner < 0) | keep[self.owner.clamp_min(0)]
+        self._keep(rows)
+        self.owner = torch.where(self.owner >= 0, new_index[self.owner.clamp_min(0)], self.owner)
+        self.policy_means = self.policy_means[keep]
+        self.policy_covariances = self.policy_covariances[keep]
+        self.active = self.active[keep]
+        self.success = self.success[keep]
+        self.paths = self.paths[keep]
 
     # ------------------------------------------------------------------ the model
     @property
     def mixture(self) -> GaussianMixture:
-        """The IGMM over [θ, r] with the policies' current means, r in return units.
+        """The IGMM over [θ, r] of the last clustering, with the policies' current means,
+        r in return units.
 
         ``mixture.condition(range(D), theta).mean`` predicts the return of ``theta``;
         ``mixture.condition([D], r)`` is the distribution of policies given a return level.
+        Components are the last clustering's; in the default variant policies created or
+        merged since then are not in it.
         """
         if self.dp_state is None:
             raise RuntimeError("the mixture exists after the first tell()")
-        slope = self.reward_scale.slope
+        slope = self.reward_scale.slope(self.rewards)
         scale = torch.ones(self.dim + 1, dtype=DTYPE, device=self.device)
         scale[-1] = slope
-        means = torch.cat((self.policy_means, self.dp_state.means[:, -1:]), dim=1)
-        means[:, -1] = self.reward_scale.inverse(means[:, -1])
+        means = self.dp_state.means.clone()
+        if self.is_paper_variant and means.shape[0] == self.num_policies:
+            means[:, : self.dim] = self.policy_means
+        means[:, -1] = self.reward_scale.inverse(means[:, -1], self.rewards)
         covs = self.dp_state.covariances * scale[:, None] * scale[None, :]
-        return GaussianMixture(self._policy_weights(), means, covs, validate_args=False)
+        if self.is_paper_variant and means.shape[0] == self.num_policies:
+            weights = self._policy_weights()
+        else:
+            weights = self.dp_state.counts.to(DTYPE).clamp_min(1.0)
+        return GaussianMixture(weights, means, covs, validate_args=False)
 
     @property
     def policy_rewards(self) -> Tensor:
@@ -479,12 +1110,15 @@ class Dipole(PolicySearch):
         return mixture.condition(range(self.dim), self.policy_means).mean[..., 0]
 
     # ------------------------------------------------------------------ checkpoints
+    _TENSORS = (*PolicySearch._TENSORS, "success", "paths")
+
     def state_dict(self) -> dict:
         state = super().state_dict()
         state["initial_prior"] = (
             None if self.initial_prior is None else self.initial_prior.state_dict()
         )
         state["dp_state"] = None if self.dp_state is None else self.dp_state.state_dict()
+        state["clusterings_skipped"] = self.clusterings_skipped
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -495,6 +1129,7 @@ class Dipole(PolicySearch):
         )
         dp = _to_device(state["dp_state"], self.device)
         self.dp_state = None if dp is None else DPMixtureState.from_state_dict(dp)
+        self.clusterings_skipped = int(state.get("clusterings_skipped", 0))
 
 
 def _to_device(state, device: torch.device):

@@ -9,49 +9,79 @@ from dipole_torch.validation import check_finite
 
 
 class RewardScale:
-    """Affine map of returns in ``[low, high]`` onto weights in ``[floor, 1]``.
+    """Affine map of returns onto weights in ``[floor, 1]``.
 
     PoWER averages samples weighted by their returns and eq. 6 multiplies component
     probabilities by r_c, so both need positive numbers. The paper's returns are not all
     positive (cart-pole's lie in [−1000, 1000]) and it does not say how it made them so; we use
-    w = max((r − low) / (high − low), floor), the transform that keeps PoWER's update
-    (a weighted average) invariant to the units of the return. ``floor`` keeps a return at the
+    w = max((r − low) / (high − low), floor), the transform that keeps PoWER's update (a
+    weighted average) invariant to the units of the return. ``floor`` keeps a return at the
     bottom of the range from zeroing a component's weight in eq. 6.
 
-    With ``low = high = None`` returns are used as they are and must be positive.
+    Three modes:
+
+    * ``RewardScale()`` (adaptive, the default of the optimizers): ``low`` and ``high`` are
+      the smallest and largest of the returns the optimizer currently keeps (its
+      ``reference``), recomputed at every use. No range is needed in advance; any finite
+      returns work (negative, of order 1e-9 or 1e9, a range that grows during the run), and
+      the weights are invariant to any positive affine change of the return's units.
+    * ``RewardScale(low, high)``: a fixed range known in advance (the paper's setting);
+      returns outside it are refused.
+    * ``RewardScale(positive=True)``: returns are used as they are and must be positive.
 
     Args:
         low: lowest possible return, or ``None``.
         high: highest possible return (> low), or ``None``.
         floor: smallest weight, in (0, 1).
+        positive: use positive returns as weights unchanged (no range).
     """
 
-    def __init__(self, low: float | None = None, high: float | None = None, floor: float = 1e-3):
+    def __init__(
+        self,
+        low: float | None = None,
+        high: float | None = None,
+        floor: float = 1e-3,
+        positive: bool = False,
+    ):
         if (low is None) != (high is None):
             raise ValueError("reward_range needs both low and high, or neither")
-        if low is not None and not float(high) > float(low):
-            raise ValueError(f"reward_range must have high > low, got ({low}, {high})")
+        if low is not None:
+            low, high = float(low), float(high)
+            if not (torch.isfinite(torch.tensor([low, high])).all() and high > low):
+                raise ValueError(
+                    f"reward_range must be finite with high > low, got ({low}, {high})"
+                )
+            if positive:
+                raise ValueError("positive=True takes no reward_range")
         if not 0.0 < floor < 1.0:
             raise ValueError(f"floor must lie in (0, 1), got {floor}")
-        self.low = None if low is None else float(low)
-        self.high = None if high is None else float(high)
+        self.low = low
+        self.high = high
         self.floor = float(floor)
+        self.positive = bool(positive)
 
-    def __call__(self, rewards: Tensor) -> Tensor:
-        """``[...]`` weights of ``rewards: [...]``; raises on values outside the range."""
+    @property
+    def adaptive(self) -> bool:
+        """Whether the range follows the kept returns."""
+        return self.low is None and not self.positive
+
+    def __call__(self, rewards: Tensor, reference: Tensor | None = None) -> Tensor:
+        """``[...]`` weights of ``rewards: [...]``; raises on values this scale cannot map."""
         self.validate(rewards)
-        return self.weights(rewards)
+        return self.weights(rewards, reference)
 
     def validate(self, rewards: Tensor) -> None:
         """Raise ``ValueError`` on non-finite rewards, or rewards this scale cannot map."""
         check_finite(rewards, "rewards")
-        if self.low is None:
+        if self.positive:
             if (rewards <= 0).any():
                 raise ValueError(
-                    "rewards must be positive when no reward_range is given (PoWER and eq. 6 "
-                    f"weight by them); got min {float(rewards.min()):g}. Pass reward_range="
-                    "(low, high) to map them to [floor, 1]."
+                    "rewards must be positive with RewardScale(positive=True) (PoWER and eq. 6 "
+                    f"weight by them); got min {float(rewards.min()):g}. Give no reward_range "
+                    "to map any returns to [floor, 1] adaptively."
                 )
+            return
+        if self.low is None:
             return
         slack = 1e-9 * (self.high - self.low)
         if (rewards < self.low - slack).any() or (rewards > self.high + slack).any():
@@ -60,22 +90,50 @@ class RewardScale:
                 f"min {float(rewards.min()):g}, max {float(rewards.max()):g}"
             )
 
-    def weights(self, rewards: Tensor) -> Tensor:
-        """The map itself, for rewards already validated (e.g. the ones an optimizer kept)."""
-        if self.low is None:
+    def range(self, reference: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(low, high)`` of the map as 0-d tensors; adaptive: the min and max of
+        ``reference: [N]`` (``high`` > ``low`` always: a flat reference maps to weight 1)."""
+        if self.positive:
+            raise RuntimeError("RewardScale(positive=True) has no range")
+        if self.low is not None:
+            return torch.tensor(self.low, dtype=torch.float64), torch.tensor(
+                self.high, dtype=torch.float64
+            )
+        if reference is None or reference.numel() == 0:
+            raise ValueError("an adaptive RewardScale needs the reference returns")
+        low, high = reference.min(), reference.max()
+        # A flat reference: every return is the best one (weight 1). The width is relative
+        # to the returns' magnitude so that any units work.
+        width = (high - low).clamp_min(torch.finfo(reference.dtype).tiny)
+        return high - width, high
+
+    def weights(self, rewards: Tensor, reference: Tensor | None = None) -> Tensor:
+        """The map itself, for rewards already validated.
+
+        Args:
+            rewards: ``[...]`` returns.
+            reference: ``[N]`` the returns that define an adaptive range (e.g. the ones an
+                optimizer keeps); ignored with a fixed range. Defaults to ``rewards``.
+        """
+        if self.positive:
             return rewards
-        return ((rewards - self.low) / (self.high - self.low)).clamp(self.floor, 1.0)
+        low, high = self.range(rewards.reshape(-1) if reference is None else reference)
+        low, high = low.to(rewards), high.to(rewards)
+        return ((rewards - low) / (high - low)).clamp(self.floor, 1.0)
 
-    def inverse(self, weights: Tensor) -> Tensor:
+    def inverse(self, weights: Tensor, reference: Tensor | None = None) -> Tensor:
         """Returns corresponding to ``weights`` (the floor is not undone)."""
-        if self.low is None:
+        if self.positive:
             return weights
-        return self.low + weights * (self.high - self.low)
+        low, high = self.range(reference)
+        return low.to(weights) + weights * (high - low).to(weights)
 
-    @property
-    def slope(self) -> float:
+    def slope(self, reference: Tensor | None = None) -> float:
         """d(return)/d(weight)."""
-        return 1.0 if self.low is None else self.high - self.low
+        if self.positive:
+            return 1.0
+        low, high = self.range(reference)
+        return float(high - low)
 
 
 def check_rewards(rewards: Tensor, batch: int) -> Tensor:
@@ -86,5 +144,7 @@ def check_rewards(rewards: Tensor, batch: int) -> Tensor:
         raise ValueError(
             f"rewards must have shape [{batch}] (one per asked θ), got {list(rewards.shape)}"
         )
+    if rewards.dtype == torch.bool or not (rewards.is_floating_point() or rewards.dtype.is_signed):
+        raise ValueError(f"rewards must be real numbers, got dtype {rewards.dtype}")
     check_finite(rewards, "rewards")
     return rewards.to(torch.float64)

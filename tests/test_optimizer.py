@@ -1,5 +1,7 @@
 """The ask/tell optimizers: interface, checkpoints, bad input."""
 
+import math
+
 import pytest
 import torch
 
@@ -87,7 +89,7 @@ def test_bad_input_is_rejected_before_it_changes_anything():
 
 
 def test_tell_without_ask_and_positive_rewards_without_range():
-    opt = Power(torch.zeros(2), torch.eye(2))
+    opt = Power(torch.zeros(2), torch.eye(2), reward_range="positive")
     with pytest.raises(RuntimeError, match="without a preceding ask"):
         opt.tell(torch.zeros(5, 2), torch.ones(5))
     theta = opt.ask()
@@ -115,3 +117,160 @@ def test_bad_constructor_arguments(kwargs, message):
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
         Dipole(**args)
+
+
+# ---------------------------------------------------------------- any reward scale
+def two_optima(theta):
+    """f(θ) = −100·min ‖θ ∓ 1‖²: two optima at ±1, every return negative."""
+    theta = theta.double()
+    return -100.0 * torch.minimum((theta - 1).pow(2).sum(-1), (theta + 1).pow(2).sum(-1))
+
+
+def learn(opt, f, trials):
+    while opt.trials < trials:
+        theta = opt.ask()
+        opt.tell(theta, f(theta))
+    return opt
+
+
+@pytest.mark.parametrize(
+    "scale, offset", [(1.0, 0.0), (1e-9, 0.0), (1e9, 0.0), (1e-9, -5e-7), (1e9, 3e12)]
+)
+def test_dipole_needs_no_reward_range(scale, offset):
+    # Negative returns, returns of order 1e-9 and 1e9, large offsets: no range is given and
+    # the run must learn as well as on the unit scale (it ran into a reward_range error at
+    # trial 56 with a guessed range before).
+    opt = Dipole(torch.zeros(2), 0.5 * torch.eye(2), generator=torch.Generator().manual_seed(0))
+    learn(opt, lambda t: offset + scale * two_optima(t), 800)
+    theta, best = opt.best()
+    assert (best - offset) / scale > -1e-3
+    on = (opt.policy_means.abs() - 1).abs().amax(-1) < 0.05
+    signs = set(opt.policy_means[on, 0].sign().tolist())
+    assert signs == {-1.0, 1.0}, opt.policy_means  # both optima kept
+
+
+def test_unit_changes_do_not_change_the_run():
+    # Weights are the kept returns' min-max: r -> a r + b (a > 0) leaves every decision alone.
+    runs = []
+    for a, b in ((1.0, 0.0), (1e6, -3e6), (1e-6, 2.0)):
+        opt = Dipole(
+            torch.zeros(2, dtype=F64),
+            0.5 * torch.eye(2, dtype=F64),
+            generator=torch.Generator().manual_seed(4),
+        )
+        runs.append(learn(opt, lambda t, a=a, b=b: b + a * two_optima(t), 150))
+    for other in runs[1:]:
+        assert other.trials == runs[0].trials
+        torch.testing.assert_close(other.policy_means, runs[0].policy_means, rtol=1e-6, atol=1e-8)
+
+
+def test_a_range_that_grows_during_the_run():
+    # Returns grow by orders of magnitude as learning succeeds (exp of a quadratic).
+    opt = Dipole(torch.zeros(3), torch.eye(3), generator=torch.Generator().manual_seed(1))
+    learn(opt, lambda t: torch.exp(20.0 - 10.0 * (t.double() - 2).pow(2).sum(-1)), 600)
+    assert opt.best()[1] > math.exp(19.0)
+
+
+def test_fixed_range_is_still_accepted_and_enforced():
+    opt = Dipole(torch.zeros(2), torch.eye(2), reward_range=(-1.0, 1.0))
+    theta = opt.ask()
+    with pytest.raises(ValueError, match="outside reward_range"):
+        opt.tell(theta, torch.full((theta.shape[0],), 3.0))
+    with pytest.raises(ValueError, match="finite with high > low"):
+        Dipole(torch.zeros(2), torch.eye(2), reward_range=(-math.inf, 1.0))
+
+
+# ---------------------------------------------------------------- convergence
+def test_a_policy_converges_on_a_smooth_bump_in_10d():
+    # One anisotropic Gaussian bump in 10-D: by 2000 trials some policy mean returns within
+    # 1e-3 (relative) of the bump's height, and the exploration has shrunk.
+    g = torch.Generator().manual_seed(0)
+    d = 10
+    q, _ = torch.linalg.qr(torch.randn(d, d, generator=g, dtype=F64))
+    stds = 0.5 + torch.rand(d, generator=g, dtype=F64)
+    precision = q @ torch.diag(stds**-2) @ q.T
+    centre = 2 * torch.rand(d, generator=g, dtype=F64) - 1
+
+    def bump(theta):
+        diff = theta.double() - centre
+        return 7.0 * torch.exp(-0.5 * ((diff @ precision) * diff).sum(-1))
+
+    opt = Dipole(
+        torch.zeros(d, dtype=F64),
+        4 * torch.eye(d, dtype=F64),
+        generator=torch.Generator().manual_seed(0),
+    )
+    learn(opt, bump, 2000)
+    assert float(bump(opt.policy_means).max()) >= 7.0 * (1 - 1e-3)
+    assert float(opt.policy_covariances.diagonal(dim1=-2, dim2=-1).max()) < 1e-2 * 4
+
+
+def test_long_successful_run_retires_converged_policies_and_keeps_going():
+    # 4000 trials on two optima: policies converge, retire, scouts restart the search; the
+    # run never raises, retired policies are no longer asked and are still returned.
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+        generator=torch.Generator().manual_seed(2),
+    )
+    learn(opt, two_optima, 4000)
+    assert (~opt.active).any()
+    retired = opt.policy_means[~opt.active]
+    assert ((retired.abs() - 1).abs().amax(-1) < 1e-2).all()
+    asked = opt.ask()
+    assert (opt.asked_owner >= 0).sum() == opt.active.sum()
+    assert asked.shape[0] >= int(opt.active.sum())
+
+
+def test_paper_variant_is_reachable():
+    task = MultimodalTask()
+    opt = Dipole.paper(
+        task.theta0,
+        task.sigma_start,
+        reward_range=task.reward_range,
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert opt.importance == "global" and opt.exploration == "clustering"
+    assert opt.explore == 0 and not opt.hill_valley
+    run(opt, task, 100)
+    assert opt.active.all() and opt.asked_owner is None
+
+
+# ---------------------------------------------------------------- a transactional tell
+def test_tell_leaves_the_optimizer_untouched_when_it_raises(monkeypatch):
+    import dipole_torch.optimizer as optimizer_module
+
+    task = MultimodalTask()
+    opt = run(make(Dipole, task, seed=5), task, 40)
+    theta = opt.ask()
+    before = opt.state_dict()
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("clustering failed")
+
+    monkeypatch.setattr(optimizer_module, "fit_dp_mixture", broken)
+    for _ in range(20):  # tell until a clustering is due, and fails
+        before = opt.state_dict()
+        try:
+            opt.tell(theta, task.evaluate(theta))
+        except RuntimeError as error:
+            assert "clustering failed" in str(error)
+            break
+        theta = opt.ask()
+    else:
+        raise AssertionError("no clustering within 20 iterations")
+    after = opt.state_dict()
+    assert before.keys() == after.keys()
+    for key, value in before.items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(value, after[key]), key
+        elif key != "dp_state" and key != "initial_prior":
+            assert value == after[key], key
+
+
+def test_large_offsets_and_tiny_exploration():
+    # θ0 = 1e6·1 with Σ_start = 1e-4·I used to make the clustering raise inside tell.
+    theta0 = torch.full((3,), 1e6, dtype=F64)
+    opt = Dipole(theta0, 1e-4 * torch.eye(3, dtype=F64), generator=torch.Generator().manual_seed(0))
+    learn(opt, lambda t: -(t - theta0 - 0.01).pow(2).sum(-1), 300)
+    assert (opt.best()[0] - theta0 - 0.01).abs().max() < 5e-3
