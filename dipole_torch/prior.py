@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 from torch.distributions import MultivariateNormal, Wishart
 
-from dipole_torch.sampling import draw
+from dipole_torch.sampling import draw, draw_with_uniforms
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
 
 
@@ -101,16 +101,27 @@ class NormalInverseWishartPrior:
         return Wishart(df=df, precision_matrix=scale, validate_args=False)
 
     def sample_inverse_wishart(
-        self, df: Tensor | float, scale: Tensor, generator: torch.Generator | None
-    ) -> Tensor:
-        """``[..., D, D]`` draws of IW(df, scale) (batched over ``scale``'s leading dims)."""
+        self,
+        df: Tensor | float,
+        scale: Tensor,
+        generator: torch.Generator | None,
+        num_uniforms: int = 0,
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """``[..., D, D]`` draws of IW(df, scale) (batched over ``scale``'s leading dims).
+
+        With ``num_uniforms > 0``, also ``[num_uniforms]`` U(0, 1) draws from the same seed of
+        ``generator`` (:func:`dipole_torch.sampling.draw_with_uniforms`), returned as a pair.
+        """
         with warnings.catch_warnings():
             # torch's Wishart.rsample tests its draws with an inverted flag, warns "Singular
             # sample detected" for valid ones and redraws them once: still exact, just noisy.
             warnings.filterwarnings("ignore", "Singular sample detected")
-            precision = draw(self.precision_distribution(df, scale), (), generator)
+            precision, uniforms = draw_with_uniforms(
+                self.precision_distribution(df, scale), num_uniforms, (), generator
+            )
         covariance = torch.cholesky_inverse(torch.linalg.cholesky(precision))
-        return 0.5 * (covariance + covariance.transpose(-1, -2))
+        covariance = 0.5 * (covariance + covariance.transpose(-1, -2))
+        return (covariance, uniforms) if num_uniforms > 0 else covariance
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """Draw n component parameters from H.

@@ -39,17 +39,43 @@ def draw(
     Returns:
         ``[*sample_shape, *batch_shape, *event_shape]`` sample.
     """
-    if generator is None:
-        return distribution.sample(torch.Size(sample_shape))
-    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
+    return draw_with_uniforms(distribution, 0, sample_shape, generator)[0]
+
+
+def draw_with_uniforms(
+    distribution: Distribution,
+    num_uniforms: int,
+    sample_shape: torch.Size | tuple[int, ...] = (),
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`draw`, followed by ``num_uniforms`` U(0, 1) draws from the same seed.
+
+    A Metropolis-Hastings step needs an acceptance uniform next to each proposal. Drawn here,
+    from the one seed the proposal takes from ``generator`` anyway, they leave the generator's
+    stream, and so every later draw, as it would be without the acceptance test.
+
+    Returns:
+        The sample, and ``[num_uniforms]`` float64 uniforms on the distribution's device.
+    """
     device = _device_of(distribution)
+    shape = torch.Size(sample_shape)
+
+    def sample() -> tuple[torch.Tensor, torch.Tensor]:
+        value = distribution.sample(shape)
+        if num_uniforms == 0:  # plain draw: touch no RNG beyond the distribution's own
+            return value, torch.empty(0, dtype=torch.float64, device=device)
+        return value, torch.rand(num_uniforms, dtype=torch.float64, device=device)
+
+    if generator is None:
+        return sample()
+    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices, device_type=device.type):
         torch.random.default_generator.manual_seed(seed)
         if device.type == "cuda":
             with torch.cuda.device(device):
                 torch.cuda.manual_seed(seed)
-        return distribution.sample(torch.Size(sample_shape))
+        return sample()
 
 
 def draw_categorical(logits: torch.Tensor, uniform: torch.Tensor) -> torch.Tensor:

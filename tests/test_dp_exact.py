@@ -24,6 +24,7 @@ from dipole_torch import (
     DPMixture,
     DPMixtureState,
     NormalInverseWishartPrior,
+    dp_mixture,
     neal8_sweep,
 )
 
@@ -131,14 +132,24 @@ def test_block_marginal_quadrature_against_a_grid():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("reg, psi0", [(0.0, 1.0)])  # exact: 0.138 0.238 0.037 0.263 0.324
+@pytest.mark.parametrize(
+    "reg, psi0",
+    [
+        (0.0, 1.0),  # exact: 0.138 0.238 0.037 0.263 0.324
+        # R well above the prior's σ² (E[σ²] = ψ0 / (ν0 − 2) = 0.025): adding R to the
+        # conjugate draw without the MH correction (exact_covariance=False) gives 0.162 for
+        # one cluster over 20 000 sweeps (exact 0.062); 0.147 over this test's 1000.
+        (0.3, 0.05),  # exact: 0.062 0.281 0.011 0.316 0.331
+    ],
+)
 def test_gibbs_matches_the_exact_partition_posterior(reg, psi0):
     """Label frequencies of 1000 sweeps against the exact partition posterior.
 
     Margin: 4 Monte-Carlo standard errors, sqrt(τ p (1 − p) / 1000) with an integrated
-    autocorrelation time τ = 2 (batch means over 2000-sweep chains gave τ ≈ 0.9 to 2.1):
-    0.062 for p = 0.14, 0.084 for p = 0.33. Dropping the α/m of new components (α instead)
-    moves the singletons to 0.62.
+    autocorrelation time τ = 2 (batch means over 20 000-sweep chains gave τ ≈ 0.7 to 1.6):
+    0.018 for p = 0.011, 0.084 for p = 0.33. Dropping the α/m of new components (α instead)
+    moves the singletons to 0.63 (R = 0) and 0.64 (R = 0.3); the uncorrected Σ step moves
+    one cluster by +0.085 here (margin 0.043).
     """
     sweeps = 1000
     exact = exact_partition_probabilities(Y, MU0, S0_SQ, NU0, psi0, reg, ALPHA)
@@ -146,6 +157,57 @@ def test_gibbs_matches_the_exact_partition_posterior(reg, psi0):
     frequency = torch.bincount(index, minlength=5).double().numpy() / sweeps
     margin = 4.0 * np.sqrt(2.0 * exact * (1.0 - exact) / sweeps)
     assert (np.abs(frequency - exact) < margin).all(), (exact, frequency, margin)
+
+
+def test_covariance_step_without_regularisation_is_the_gibbs_draw():
+    # R = 0: ρ ≡ 1, every proposal is accepted, and the draw is the conjugate IW draw.
+    prior = fixed_prior(0.0)
+    counts = torch.tensor([1.0, 3.0, 7.0], dtype=F64)
+    scatter = torch.tensor([0.1, 2.0, 30.0], dtype=F64)[:, None, None]
+    covs = torch.tensor([0.01, 1.0, 100.0], dtype=F64)[:, None, None]
+    g = torch.Generator().manual_seed(0)
+    new, accepted = dp_mixture._covariance_step(prior, covs, counts, scatter, g)
+    assert accepted.all()
+    g = torch.Generator().manual_seed(0)
+    plain = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, g)
+    assert torch.equal(new, plain)
+
+
+def test_regularisation_log_weight_matches_the_densities():
+    # Σ_i log N(y_i; μ, Σ + R) − log N(y_i; μ, Σ) from the scatter, against direct densities;
+    # −inf for a Σ outside the support, where the MH step then accepts any proposal.
+    g = torch.Generator().manual_seed(1)
+    d = 3
+    a = torch.randn(2, d, d, generator=g, dtype=F64)
+    covs = a @ a.transpose(-1, -2) + 0.1 * torch.eye(d, dtype=F64)
+    reg = 0.3 * torch.eye(d, dtype=F64)
+    means = torch.randn(2, d, generator=g, dtype=F64)
+    y = torch.randn(7, d, generator=g, dtype=F64)
+    labels = torch.tensor([0, 1, 1, 0, 1, 1, 1])
+    scatter = dp_mixture._scatter(y, labels, means)
+    counts = torch.bincount(labels).to(F64)
+    weight = dp_mixture._regularisation_log_weight(covs, reg, counts, scatter)
+
+    def log_lik(c):
+        dist = torch.distributions.MultivariateNormal(means[labels], c[labels])
+        return torch.zeros(2, dtype=F64).index_add_(0, labels, dist.log_prob(y))
+
+    torch.testing.assert_close(weight, log_lik(covs + reg) - log_lik(covs))
+    outside = covs.clone()
+    outside[1] = -torch.eye(d, dtype=F64)
+    weight = dp_mixture._regularisation_log_weight(outside, reg, counts, scatter)
+    assert weight[1] == -math.inf and torch.isfinite(weight[0])
+    prior = NormalInverseWishartPrior(
+        torch.zeros(d, dtype=F64), covs[0], float(d + 3), 2.0 * covs[0], reg
+    )
+    new, accepted = dp_mixture._covariance_step(prior, outside + reg, counts, scatter, g)
+    assert accepted[1]
+    # Without the correction (exact=False): the conjugate draw + R, always.
+    state = g.get_state()
+    new, accepted = dp_mixture._covariance_step(prior, covs + reg, counts, scatter, g, exact=False)
+    g.set_state(state)
+    plain = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, g)
+    assert accepted.all() and torch.equal(new, plain + reg)
 
 
 def test_fixed_prior_stays_fixed():
