@@ -71,7 +71,9 @@ class PolicySearch:
         iteration: number of tells after the initial batch.
         last_rewards: ``[K]`` returns of the latest told batch's policy samples (one per
             active policy; the whole batch after the first tell). Exploration samples that
-            belong to no policy (DIPOLE's scouts) are not in it.
+            belong to no policy (DIPOLE's scouts and probes) are not in it; after a batch
+            with no policy sample (every policy retired) it holds the retired policies' best
+            returns.
         thetas, rewards, owner: ``[N, D]``, ``[N]``, ``[N]`` the kept samples, their returns
             and the policy owning each (−1: a scout that belongs to no policy yet).
         active: ``[K]`` which policies are still sampled (DIPOLE retires converged ones).
@@ -225,7 +227,13 @@ class PolicySearch:
         self.rewards = torch.cat((self.rewards, rewards[~probe]))
         self.owner = torch.cat((self.owner, owner[~probe]))
         self.trials += theta.shape[0]
-        self.last_rewards = rewards if first else rewards[owner >= 0]
+        if first:
+            self.last_rewards = rewards
+        elif bool((owner >= 0).any()):
+            self.last_rewards = rewards[owner >= 0]
+        else:  # a restart batch (every policy retired): the policies' returns are as they were
+            best = self.policy_best_rewards
+            self.last_rewards = best[torch.isfinite(best)]
         best = int(rewards.argmax())
         if float(rewards[best]) > self._best_reward:
             self._best_reward = float(rewards[best])
@@ -420,8 +428,9 @@ class Dipole(PolicySearch):
     """DIPOLE (Algorithm 2): PoWER on every component of a reward-weighted DP mixture.
 
     * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per active policy
-      from its exploration Gaussian, and every ``cluster_every`` iterations ``explore``
-      scouts from N(θ0, Σ_start) that belong to no policy yet.
+      from its exploration Gaussian, ``explore`` scouts per policy sample (on average) from
+      N(θ0, Σ_start) that belong to no policy yet, and any hill-valley probes (see below);
+      :attr:`asked_owner` says which row is which.
     * ``tell()``: a PoWER step (eq. 7) per policy on its best M samples; after the initial
       batch and every ``cluster_every`` iterations, a weighted DP clustering (eq. 6, Neal's
       Algorithm 8) of the kept samples, augmented with their reward weights y = [θ, w],
@@ -439,7 +448,9 @@ class Dipole(PolicySearch):
     ``exploration``               ``"success"``: each policy  ``"clustering"``: the θ-block
                                   scales its covariance by    of its DP component's
                                   its success rate            posterior covariance
-    ``explore``                   scouts per clustering       0
+    ``explore``                   scouts per policy sample    0
+    ``hill_valley``               probe new and neighbouring  no
+                                  policies
     ``max_policies``              active policies at most     no limit
     ``retire_std``                stop sampling a converged   0 (never)
                                   policy
@@ -457,11 +468,19 @@ class Dipole(PolicySearch):
       clustering and multiplies it after every sample by exp((p̄ − p_t) / (d (1 − p_t)))²,
       where p̄ is the policy's running rate of samples that beat its best kept sample (the
       1/5th success rule of the (1+1)-CMA-ES, Igel, Suttorp & Hansen 2006: p_t = 2/11,
-      smoothing 1/12, damping d = 1 + D/2). Exploration then shrinks geometrically near an
-      optimum and grows on a slope. A new component starts from the DP posterior covariance.
+      smoothing 1/12, damping d = 1 + D/2), and adds that method's rank-one update along
+      the evolution path of its successful steps (c_c = 2/(D + 2), c_cov = 2/(D² + 6)), so
+      the covariance learns the optimum's shape. Exploration then shrinks geometrically near
+      an optimum and grows on a slope (never beyond Σ_start). A new component starts from
+      the DP posterior covariance.
     * Scouts let the clustering find optima after the first n0 samples: a scout that the
-      DP puts in a component of its own becomes a new policy (while fewer than
-      ``max_policies`` are active); policies whose samples the DP merges become one.
+      DP puts in a component of its own is a candidate. With ``hill_valley`` the midpoint
+      between its best sample and the nearest policy's best sample is evaluated at the next
+      ask (the hill-valley test, Ursem 1999): only a candidate with a valley between them
+      becomes a policy (while fewer than ``max_policies`` are active). Every fourth
+      clustering, each active policy is probed the same way against its nearest neighbour,
+      and of two on one hill the worse goes. Policies whose samples the DP merges become
+      one.
     * A policy whose exploration std has shrunk below ``retire_std`` times Σ_start's is
       retired: it stays among :attr:`policies` but is no longer sampled, so its trials go to
       the others. An active policy closer than ``merge_radius`` exploration stds to another
@@ -486,10 +505,11 @@ class Dipole(PolicySearch):
         prior_df: ν0 of the inverse-Wishart prior (see below).
         importance: ``"policy"`` or ``"global"`` (see the table).
         exploration: ``"success"`` or ``"clustering"``.
-        explore: scouts asked once per clustering period (≥ 0).
+        explore: scouts per policy sample, in [0, 1] (0: none).
         max_policies: most active policies, or ``None`` for no limit.
         retire_std: relative exploration std below which a policy is retired (0: never).
         merge_radius: duplicate distance in exploration stds (0: never merge).
+        hill_valley: vet candidates and neighbouring policies with midpoint probes.
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
 

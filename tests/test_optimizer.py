@@ -213,7 +213,10 @@ def test_long_successful_run_retires_converged_policies_and_keeps_going():
         torch.eye(2, dtype=F64),
         generator=torch.Generator().manual_seed(2),
     )
-    learn(opt, two_optima, 4000)
+    while opt.trials < 4000:
+        theta = opt.ask()
+        opt.tell(theta, two_optima(theta))
+        assert opt.last_rewards.numel() > 0  # also after a batch of scouts only
     assert (~opt.active).any()
     retired = opt.policy_means[~opt.active]
     assert ((retired.abs() - 1).abs().amax(-1) < 1e-2).all()
