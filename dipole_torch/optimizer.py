@@ -745,16 +745,7 @@ class Dipole(PolicySearch):
         self.initial_prior = NormalInverseWishartPrior.from_exploration(
             mean, cov, df=self.prior_df, regularization=self.regularization
         )
-        state = fit_dp_mixture(
-            y,
-            self.initial_prior,
-            self.initial_sweeps,
-            self.alpha,
-            self.m,
-            self.reward_weighted,
-            self.generator,
-        )
-        self._adopt(y, state)
+        self._adopt(y, self._fit(y, self.initial_sweeps))
 
     def _cluster_paper(self) -> None:
         """Weighted DP clustering of the kept samples, warm-started from the policies."""
@@ -767,17 +758,22 @@ class Dipole(PolicySearch):
             covariances=self.dp_state.covariances,
             prior=self.dp_state.prior,
         )
-        state = fit_dp_mixture(
+        self._adopt(y, self._fit(y, self.sweeps, start))
+
+    def _fit(self, y: Tensor, sweeps: int, start: DPMixtureState | None = None) -> DPMixtureState:
+        """``sweeps`` Gibbs sweeps of the weighted DP mixture on ``y`` from ``start`` (or
+        Algorithm 1's single component), anchored on the initial prior."""
+        assert self.initial_prior is not None
+        return fit_dp_mixture(
             y,
             self.initial_prior,
-            self.sweeps,
+            sweeps,
             self.alpha,
             self.m,
             self.reward_weighted,
             self.generator,
             state=start,
         )
-        self._adopt(y, state)
 
     def _adopt(self, y: Tensor, state: DPMixtureState) -> None:
         """Make the clustering's components the policies, and keep each one's best M."""
@@ -824,17 +820,7 @@ class Dipole(PolicySearch):
         )
         try:
             start = DPMixtureState.from_labels(y, start_labels, self.dp_state.prior)
-            state = fit_dp_mixture(
-                y,
-                self.initial_prior,
-                self.sweeps,
-                self.alpha,
-                self.m,
-                self.reward_weighted,
-                self.generator,
-                state=start,
-            )
-            state = posterior_point_estimate(y, state)
+            state = posterior_point_estimate(y, self._fit(y, self.sweeps, start))
         except torch.linalg.LinAlgError:
             # Converged policies' samples can make a component's covariance numerically
             # singular in float64. A run that goes well must not stop: skip this clustering
