@@ -37,7 +37,10 @@ from what it would be given on an unknown problem in the box [−5, 5]^D:
 * **IPOP-CMA-ES**: pycma's ``CMAEvolutionStrategy`` in an ask/tell loop (so the budget is
   exact), bounds [−5, 5], sigma0 = 2.5 (a quarter of the box width, pycma's advice), x0
   uniform in the box at every restart, population 4 + ⌊3 ln D⌋ doubled at each restart, a
-  restart whenever pycma's own ``stop()`` says so. Returned: every restart's best evaluated
+  restart whenever pycma's own ``stop()`` says so, with ``tolx`` = 1e-3·sigma0 (the precision
+  at which DIPOLE retires a policy; pycma's default 1e-11 spends most of the budget far below
+  what "found" needs, about 3 restarts in 2000 trials at D = 2) and no tolerance on f (the
+  landscapes' scale spans 10^±3). Returned: every restart's best evaluated
   point (the running restart's best so far included).
 * **NMMSO**: pynmmso's ``Nmmso`` with its defaults on [−5, 5]^D, maximising f, halted at the
   budget's evaluation. Returned: its mode locations (one per swarm). Its algorithm never reads

@@ -745,7 +745,13 @@ class Dipole(PolicySearch):
         self.initial_prior = NormalInverseWishartPrior.from_exploration(
             mean, cov, df=self.prior_df, regularization=self.regularization
         )
-        self._adopt(y, self._fit(y, self.initial_sweeps))
+        try:
+            state = self._fit(y, self.initial_sweeps)
+        except torch.linalg.LinAlgError:
+            # See _cluster: start from Algorithm 1's single component instead.
+            self.clusterings_skipped += 1
+            state = DPMixtureState.single_component(y, self.initial_prior)
+        self._adopt(y, state)
 
     def _cluster_paper(self) -> None:
         """Weighted DP clustering of the kept samples, warm-started from the policies."""
@@ -758,7 +764,12 @@ class Dipole(PolicySearch):
             covariances=self.dp_state.covariances,
             prior=self.dp_state.prior,
         )
-        self._adopt(y, self._fit(y, self.sweeps, start))
+        try:
+            state = self._fit(y, self.sweeps, start)
+        except torch.linalg.LinAlgError:
+            self.clusterings_skipped += 1  # see _cluster: the policies go on unclustered
+            return
+        self._adopt(y, state)
 
     def _fit(self, y: Tensor, sweeps: int, start: DPMixtureState | None = None) -> DPMixtureState:
         """``sweeps`` Gibbs sweeps of the weighted DP mixture on ``y`` from ``start`` (or

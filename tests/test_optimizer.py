@@ -277,3 +277,26 @@ def test_large_offsets_and_tiny_exploration():
     opt = Dipole(theta0, 1e-4 * torch.eye(3, dtype=F64), generator=torch.Generator().manual_seed(0))
     learn(opt, lambda t: -(t - theta0 - 0.01).pow(2).sum(-1), 300)
     assert (opt.best()[0] - theta0 - 0.01).abs().max() < 5e-3
+
+
+@pytest.mark.parametrize("paper", [False, True])
+def test_a_numerically_failed_clustering_does_not_stop_the_run(monkeypatch, paper):
+    # A Cholesky failure inside the DP (seen on a 10-D landscape at the first clustering)
+    # must not end a run: the first clustering falls back to Algorithm 1's single
+    # component, a later one is skipped, and learning goes on.
+    import dipole_torch.optimizer as optimizer_module
+
+    def singular(*args, **kwargs):
+        raise torch.linalg.LinAlgError("not positive-definite")
+
+    monkeypatch.setattr(optimizer_module, "fit_dp_mixture", singular)
+    build = Dipole.paper if paper else Dipole
+    opt = build(
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+        reward_range=(-1e6, 0.0),
+        generator=torch.Generator().manual_seed(0),
+    )
+    learn(opt, lambda t: -(t - 0.5).pow(2).sum(-1), 200)
+    assert opt.clusterings_skipped > 1 and opt.num_policies == 1
+    assert opt.best()[1] > -0.05
