@@ -73,6 +73,7 @@ COLORS = {
 }
 LABELS = {
     "DIPOLE": "DIPOLE",
+    "DIPOLE (paper)": "DIPOLE (paper)",
     "PoWER": "PoWER (fixed Σ_start)",
     "PoWER, decaying exploration": f"PoWER, decaying exploration (×{DECAY}/iteration)",
 }

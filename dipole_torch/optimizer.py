@@ -69,11 +69,11 @@ class PolicySearch:
     Attributes:
         trials: number of reward evaluations told so far (the x-axis of the paper's plots).
         iteration: number of tells after the initial batch.
-        last_rewards: ``[K]`` returns of the latest told batch's policy samples (one per
-            active policy; the whole batch after the first tell). Exploration samples that
-            belong to no policy (DIPOLE's scouts and probes) are not in it; after a batch
-            with no policy sample (every policy retired) it holds the retired policies' best
-            returns.
+        last_rewards: ``[K]`` each policy's latest return: the returns of the latest told
+            batch's policy samples (the whole batch after the first tell), then, for each
+            retired policy (DIPOLE's, no longer sampled), the mean return of its kept
+            samples. Exploration samples that belong to no policy (DIPOLE's scouts and
+            probes) are not in it.
         thetas, rewards, owner: ``[N, D]``, ``[N]``, ``[N]`` the kept samples, their returns
             and the policy owning each (−1: a scout that belongs to no policy yet).
         active: ``[K]`` which policies are still sampled (DIPOLE retires converged ones).
@@ -229,11 +229,11 @@ class PolicySearch:
         self.trials += theta.shape[0]
         if first:
             self.last_rewards = rewards
-        elif bool((owner >= 0).any()):
-            self.last_rewards = rewards[owner >= 0]
-        else:  # a restart batch (every policy retired): the policies' returns are as they were
-            best = self.policy_best_rewards
-            self.last_rewards = best[torch.isfinite(best)]
+        else:
+            # Each policy's latest return: active ones were just sampled; a retired one is
+            # no longer sampled and keeps the mean return of its kept samples.
+            retired = self._retired_rewards()
+            self.last_rewards = torch.cat((rewards[owner >= 0], retired))
         best = int(rewards.argmax())
         if float(rewards[best]) > self._best_reward:
             self._best_reward = float(rewards[best])
@@ -244,6 +244,19 @@ class PolicySearch:
             self.iteration += 1
             self._power_step()
             self._after_iteration()
+
+    def _retired_rewards(self) -> Tensor:
+        """``[R]`` the mean kept return of each retired policy."""
+        retired = (~self.active).nonzero().squeeze(-1)
+        if retired.numel() == 0:
+            return self.rewards[:0]
+        owned = self.owner >= 0
+        k = self.num_policies
+        total = torch.zeros(k, dtype=DTYPE, device=self.device).index_add_(
+            0, self.owner[owned], self.rewards[owned]
+        )
+        count = torch.bincount(self.owner[owned], minlength=k).clamp_min(1)
+        return (total / count)[retired]
 
     def best(self) -> tuple[Tensor, float]:
         """The best parameters evaluated so far and their return: ``([D], float)``."""
