@@ -86,6 +86,12 @@ def test_multirun_over_seeds(tmp_path):
     assert seeds == [0, 1]
 
 
+def test_the_papers_dipole_runs_from_the_command_line(tmp_path):
+    train("task=multimodal", "algo=dipole_paper", "trials=40", f"hydra.run.dir={tmp_path}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["algo"] == "dipole_paper" and results["trials"] >= 40
+
+
 def test_unknown_task_on_the_command_line(tmp_path):
     result = train("task=no_such_task", f"hydra.run.dir={tmp_path}", check=False)
     assert result.returncode != 0
