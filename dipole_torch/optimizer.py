@@ -1069,9 +1069,14 @@ class Dipole(PolicySearch):
             return
         # Mahalanobis distance of policy b's mean under policy a's exploration: [K, K].
         diff = self.policy_means[None, :, :] - self.policy_means[:, None, :]
-        chol = torch.linalg.cholesky(self.policy_covariances)
+        chol, info = torch.linalg.cholesky_ex(self.policy_covariances)
+        chol = torch.where(
+            (info == 0)[:, None, None], chol, torch.eye(self.dim, dtype=DTYPE, device=self.device)
+        )
         z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
         distance = z.square().sum(-2).sqrt()  # [a, b]: under a's covariance
+        # A covariance that lost definiteness in float64 judges no duplicates.
+        distance = torch.where((info == 0)[:, None], distance, math.inf)
         near = distance < self.merge_radius
         best = self.policy_best_rewards
         drop = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
