@@ -665,7 +665,7 @@ class Dipole(PolicySearch):
             extra = draw(base, (scouts,), self.generator)
             theta = torch.cat((theta, extra))
             owner = torch.cat((owner, torch.full_like(extra[:, 0], -1, dtype=torch.long)))
-        probes = torch.cat((self.candidate_probes, self.pair_probes[: self.pair_index.shape[0]]))
+        probes = torch.cat((self.candidate_probes, self.pair_probes))
         if probes.shape[0]:
             theta = torch.cat((theta, probes))
             owner = torch.cat((owner, torch.full_like(probes[:, 0], PROBE, dtype=torch.long)))
@@ -979,8 +979,7 @@ class Dipole(PolicySearch):
             self._accept_candidates(torch.ones(c, dtype=torch.bool, device=self.device))
             return
         partners = self._policy_best_samples()
-        scale = self.sigma_start.diagonal().sqrt()
-        distance = torch.cdist(self.candidate_samples / scale, partners / scale)  # [C, K]
+        distance = self._nearest(self.candidate_samples, partners)  # [C, K]
         nearest = distance.argmin(-1)
         self.candidate_probes = 0.5 * (self.candidate_samples + partners[nearest])
         self.candidate_thresholds = torch.minimum(
@@ -991,17 +990,25 @@ class Dipole(PolicySearch):
         """Queue a hill-valley probe between every active policy and the policy nearest to
         it (after each clustering): two policies on one hill are one optimum."""
         if self.num_policies < 2 or not bool(self.active.any()):
-            self.pair_index = self.pair_index[:0]
+            self._clear_pairs()
             return
         best = self._policy_best_samples()
-        scale = self.sigma_start.diagonal().sqrt()
-        distance = torch.cdist(best / scale, best / scale)
+        distance = self._nearest(best, best)
         distance.fill_diagonal_(math.inf)
         a = self.active.nonzero().squeeze(-1)
         b = distance[a].argmin(-1)
         pairs = torch.stack((torch.minimum(a, b), torch.maximum(a, b)), -1).unique(dim=0)
         self.pair_index = pairs
         self.pair_probes = 0.5 * (best[pairs[:, 0]] + best[pairs[:, 1]])
+
+    def _clear_pairs(self) -> None:
+        self.pair_index, self.pair_probes = self.pair_index[:0], self.pair_probes[:0]
+
+    def _nearest(self, points: Tensor, others: Tensor) -> Tensor:
+        """``[P, Q]`` distances between ``points: [P, D]`` and ``others: [Q, D]`` in units of
+        Σ_start's per-axis std (the scale the hill-valley pairs are chosen in)."""
+        scale = self.sigma_start.diagonal().sqrt()
+        return torch.cdist(points / scale, others / scale)
 
     def _judge_pairs(self, probe_rewards: Tensor) -> None:
         """Drop the worse policy of each probed pair that shows no valley between them (a
@@ -1014,7 +1021,7 @@ class Dipole(PolicySearch):
         # The one to drop: an active one beside a retired one, else the worse one.
         drop_b = torch.where(self.active[a] != self.active[b], self.active[b], best[b] < best[a])
         loser = torch.where(drop_b, b, a)[same_hill]
-        self.pair_index = self.pair_index[:0]
+        self._clear_pairs()
         if loser.numel():
             self._remove_policies(loser.unique())
 
