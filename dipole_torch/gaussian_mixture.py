@@ -1,29 +1,46 @@
-"""A finite Gaussian mixture with torch.distributions batch semantics and Gaussian mixture
-regression (GMR, Ghahramani & Jordan 1994)."""
+"""A finite Gaussian mixture as a ``torch.distributions.Distribution`` (and a Pyro distribution),
+with Gaussian mixture regression (GMR, Ghahramani & Jordan 1994)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
 import torch
+from pyro.distributions import TorchDistribution
 from torch import Tensor
-from torch.distributions import Categorical, MixtureSameFamily, MultivariateNormal
+from torch.distributions import (
+    Categorical,
+    MixtureSameFamily,
+    MultivariateNormal,
+    constraints,
+    register_kl,
+)
+from torch.distributions.kl import _kl_multivariatenormal_multivariatenormal
 
 from dipole_torch.sampling import draw
 from dipole_torch.validation import check_positive_definite
 
 
-class GaussianMixture:
+class GaussianMixture(TorchDistribution):
     """Mixture of K full-covariance Gaussians over a D-dimensional event.
 
-    Shapes follow ``torch.distributions``: any leading batch shape ``[...]``, K components,
-    event shape ``[D]``.
+    A ``torch.distributions.Distribution`` (through Pyro's ``TorchDistribution``, so it also
+    goes straight into ``pyro.sample``): any leading batch shape ``[...]``, K components, event
+    shape ``[D]``. The parameters' batch shapes broadcast, and their dtype is the promotion of
+    the three (float32 parameters give a float32 mixture).
 
     Args:
         weights: ``[..., K]`` non-negative mixing weights (normalised here).
         means: ``[..., K, D]`` component means.
         covariances: ``[..., K, D, D]`` symmetric positive-definite component covariances.
-        validate_args: check shapes, finiteness and positive definiteness (default ``True``).
+        validate_args: check the parameters at construction (shapes, finiteness, positive
+            definiteness, with an error naming the argument) and values in :meth:`log_prob`.
+            ``None`` follows ``torch.distributions.Distribution``'s default (on, unless
+            switched off by ``Distribution.set_default_validate_args`` or
+            ``pyro.enable_validation(False)``).
+
+    There is no ``rsample``: a draw picks its component discretely, so no reparameterised
+    sample carries gradients to the weights (``MixtureSameFamily`` has none either).
 
     Example:
         >>> gm = GaussianMixture(torch.tensor([0.5, 0.5]),
@@ -31,33 +48,72 @@ class GaussianMixture:
         ...                      torch.eye(2).expand(2, 2, 2))
         >>> gm.condition([0], torch.tensor([3.0])).mean  # E[y | x=3]: mostly component 2
         tensor([0.9890])
+        >>> gm.batch_shape, gm.event_shape, gm.dtype
+        (torch.Size([]), torch.Size([2]), torch.float32)
     """
 
+    arg_constraints = {
+        "weights": constraints.simplex,
+        "means": constraints.independent(constraints.real, 2),
+        "covariances": constraints.independent(constraints.positive_definite, 1),
+    }
+    support = constraints.real_vector
+    has_rsample = False
+
     def __init__(
-        self, weights: Tensor, means: Tensor, covariances: Tensor, validate_args: bool = True
+        self,
+        weights: Tensor,
+        means: Tensor,
+        covariances: Tensor,
+        validate_args: bool | None = None,
     ):
-        if validate_args:
+        check = self._validate_args if validate_args is None else validate_args
+        if check:
             _check_parameters(weights, means, covariances)
+        # One dtype for all three, as torch.distributions' broadcast_all gives.
+        dtype = torch.promote_types(
+            torch.promote_types(weights.dtype, means.dtype), covariances.dtype
+        )
+        if not dtype.is_floating_point:
+            dtype = torch.get_default_dtype()
         # Broadcast the three batch shapes, as torch.distributions does for its parameters.
         k, d = means.shape[-2:]
         batch = torch.broadcast_shapes(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
-        weights = weights.expand(*batch, k)
-        means = means.expand(*batch, k, d)
-        covariances = covariances.expand(*batch, k, d, d)
+        weights = weights.to(dtype).expand(*batch, k)
         self.weights = weights / weights.sum(-1, keepdim=True)
-        self.means = means
-        self.covariances = covariances
+        self.means = means.to(dtype).expand(*batch, k, d)
+        self.covariances = covariances.to(dtype).expand(*batch, k, d, d)
         self._scale_tril: Tensor | None = None
+        # The parameters were checked above with messages naming them; the base class would
+        # repeat the Cholesky factorisations.
+        super().__init__(torch.Size(batch), torch.Size((d,)), validate_args=False)
+        if validate_args is None:  # read torch's default at use, as the base class does
+            del self._validate_args
+        else:
+            self._validate_args = validate_args
+
+    def expand(self, batch_shape, _instance=None) -> GaussianMixture:
+        """The same mixture broadcast to ``batch_shape`` (views, no copies)."""
+        new = self._get_checked_instance(GaussianMixture, _instance)
+        batch_shape = torch.Size(batch_shape)
+        k, d = self.num_components, self.event_shape[0]
+        new.weights = self.weights.expand(*batch_shape, k)
+        new.means = self.means.expand(*batch_shape, k, d)
+        new.covariances = self.covariances.expand(*batch_shape, k, d, d)
+        new._scale_tril = (
+            None if self._scale_tril is None else self._scale_tril.expand(*batch_shape, k, d, d)
+        )
+        super(GaussianMixture, new).__init__(batch_shape, self.event_shape, validate_args=False)
+        new._validate_args = self._validate_args
+        return new
+
+    @classmethod
+    def infer_shapes(cls, weights, means, covariances) -> tuple[torch.Size, torch.Size]:
+        """Batch and event shapes from the parameters' shapes (Pyro's shape inference)."""
+        batch = torch.broadcast_shapes(weights[:-1], means[:-2], covariances[:-3])
+        return torch.Size(batch), torch.Size(means[-1:])
 
     # ----------------------------------------------------------------- shapes and moments
-    @property
-    def batch_shape(self) -> torch.Size:
-        return self.weights.shape[:-1]
-
-    @property
-    def event_shape(self) -> torch.Size:
-        return self.means.shape[-1:]
-
     @property
     def num_components(self) -> int:
         return int(self.weights.shape[-1])
@@ -82,6 +138,11 @@ class GaussianMixture:
         return (self.weights[..., None, None] * spread).sum(-3)
 
     @property
+    def variance(self) -> Tensor:
+        """``[..., D]`` marginal variances, the diagonal of :attr:`covariance_matrix`."""
+        return self.covariance_matrix.diagonal(dim1=-2, dim2=-1)
+
+    @property
     def device(self) -> torch.device:
         return self.means.device
 
@@ -97,7 +158,11 @@ class GaussianMixture:
         return normal.log_prob(value.unsqueeze(-2))
 
     def log_prob(self, value: Tensor) -> Tensor:
-        """``[...]`` mixture log density at ``value: [..., D]``."""
+        """``[...]`` mixture log density at ``value: [..., D]`` (``[...]`` broadcasts with the
+        batch shape)."""
+        self._check_value(value)
+        if self._validate_args:
+            self._validate_sample(value)
         return torch.logsumexp(self.weights.log() + self.component_log_prob(value), dim=-1)
 
     def responsibilities(self, value: Tensor) -> Tensor:
@@ -106,13 +171,14 @@ class GaussianMixture:
 
     def sample(
         self,
-        sample_shape: torch.Size | tuple[int, ...] = (),
+        sample_shape: torch.Size | tuple[int, ...] | int = (),
         generator: torch.Generator | None = None,
     ) -> Tensor:
-        """``[*sample_shape, *batch_shape, D]`` draws, reproducible from ``generator``."""
+        """``[*sample_shape, *batch_shape, D]`` draws, reproducible from ``generator``
+        (``None``: the global RNG, as ``torch.distributions`` and ``pyro.sample`` use it)."""
         if isinstance(sample_shape, int):
             sample_shape = (sample_shape,)
-        return draw(self.to_distribution(), sample_shape, generator)
+        return draw(self.to_distribution(), torch.Size(sample_shape), generator)
 
     def to_distribution(self) -> MixtureSameFamily:
         """The same mixture as a ``torch.distributions.MixtureSameFamily``."""
@@ -122,15 +188,22 @@ class GaussianMixture:
             validate_args=False,
         )
 
+    def component(self, index: int) -> MultivariateNormal:
+        """Component ``index`` as a ``MultivariateNormal`` with this mixture's batch shape."""
+        if not -self.num_components <= index < self.num_components:
+            raise IndexError(f"index must be in [0, {self.num_components}), got {index}")
+        return MultivariateNormal(
+            self.means[..., index, :],
+            scale_tril=self.scale_tril[..., index, :, :],
+            validate_args=False,
+        )
+
     # ----------------------------------------------------------------- marginals and GMR
     def marginal(self, dims: Sequence[int]) -> GaussianMixture:
         """The mixture over ``dims`` alone (same weights, sub-blocks of means and covariances)."""
         index = self._index(dims)
-        return GaussianMixture(
-            self.weights,
-            self.means[..., index],
-            self.covariances[..., index[:, None], index],
-            validate_args=False,
+        return self._derived(
+            self.weights, self.means[..., index], self.covariances[..., index[:, None], index]
         )
 
     def condition(self, dims: Sequence[int], values: Tensor) -> GaussianMixture:
@@ -180,11 +253,10 @@ class GaussianMixture:
         log_w = torch.log_softmax(self.weights.log() + log_lik, dim=-1)
         batch = torch.broadcast_shapes(self.batch_shape, values.shape[:-1])
         k, nb = self.num_components, b.numel()
-        return GaussianMixture(
+        return self._derived(
             log_w.exp().expand(*batch, k),
             cond_means.expand(*batch, k, nb),
             cond_covs.expand(*batch, k, nb, nb),
-            validate_args=False,
         )
 
     # ----------------------------------------------------------------- persistence
@@ -198,7 +270,9 @@ class GaussianMixture:
     def load_state_dict(self, state: dict[str, Tensor]) -> None:
         """Replace this mixture's parameters (validated) by those of ``state``."""
         _check_parameters(state["weights"], state["means"], state["covariances"])
+        validate = self._validate_args
         self.__init__(state["weights"], state["means"], state["covariances"], validate_args=False)
+        self._validate_args = validate
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Tensor]) -> GaussianMixture:
@@ -206,11 +280,10 @@ class GaussianMixture:
 
     def to(self, *args, **kwargs) -> GaussianMixture:
         """A copy with parameters moved/cast as ``Tensor.to(*args, **kwargs)``."""
-        return GaussianMixture(
+        return self._derived(
             self.weights.to(*args, **kwargs),
             self.means.to(*args, **kwargs),
             self.covariances.to(*args, **kwargs),
-            validate_args=False,
         )
 
     def __repr__(self) -> str:
@@ -220,6 +293,12 @@ class GaussianMixture:
         )
 
     # ----------------------------------------------------------------- helpers
+    def _derived(self, weights: Tensor, means: Tensor, covariances: Tensor) -> GaussianMixture:
+        """A mixture computed from this one: parameters unchecked, value checks as this one's."""
+        mixture = GaussianMixture(weights, means, covariances, validate_args=False)
+        mixture._validate_args = self._validate_args
+        return mixture
+
     def _index(self, dims: Sequence[int]) -> Tensor:
         d = self.event_shape[0]
         index = torch.as_tensor(list(dims), dtype=torch.long, device=self.device).reshape(-1)
@@ -262,3 +341,33 @@ def _check_parameters(weights: Tensor, means: Tensor, covariances: Tensor) -> No
     if (weights < 0).any() or (weights.sum(-1) <= 0).any():
         raise ValueError("weights must be non-negative with a positive sum")
     check_positive_definite(covariances, "covariances")
+
+
+# --------------------------------------------------------------------------- KL divergence
+def _as_normal(mixture: GaussianMixture, role: str) -> MultivariateNormal:
+    if mixture.num_components != 1:
+        raise NotImplementedError(
+            f"kl_divergence: {role} is a GaussianMixture with {mixture.num_components} "
+            "components; the KL divergence between Gaussian mixtures has no closed form "
+            "(only single-component mixtures have one). Estimate it by Monte Carlo: "
+            "x = p.sample((n,)); (p.log_prob(x) - q.log_prob(x)).mean(0)"
+        )
+    return mixture.component(0)
+
+
+@register_kl(GaussianMixture, GaussianMixture)
+def _kl_mixture_mixture(p: GaussianMixture, q: GaussianMixture) -> Tensor:
+    """Exact KL(p ‖ q) for single-component mixtures, ``[broadcast batch shape]``."""
+    return _kl_multivariatenormal_multivariatenormal(_as_normal(p, "p"), _as_normal(q, "q"))
+
+
+@register_kl(GaussianMixture, MultivariateNormal)
+def _kl_mixture_normal(p: GaussianMixture, q: MultivariateNormal) -> Tensor:
+    """Exact KL(p ‖ q) for a single-component mixture p."""
+    return _kl_multivariatenormal_multivariatenormal(_as_normal(p, "p"), q)
+
+
+@register_kl(MultivariateNormal, GaussianMixture)
+def _kl_normal_mixture(p: MultivariateNormal, q: GaussianMixture) -> Tensor:
+    """Exact KL(p ‖ q) for a single-component mixture q."""
+    return _kl_multivariatenormal_multivariatenormal(p, _as_normal(q, "q"))

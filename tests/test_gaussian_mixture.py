@@ -122,3 +122,116 @@ def test_bad_condition_arguments_are_rejected():
         gm.condition([0], torch.zeros(2, dtype=torch.float64))
     with pytest.raises(ValueError, match="every dimension"):
         gm.condition([0, 1, 2], torch.zeros(3, dtype=torch.float64))
+
+
+# --------------------------------------------------------------------------- as a Distribution
+def test_is_a_torch_distribution_with_constraints_and_shapes():
+    gm = random_mixture(batch=(2,), k=3, d=2)
+    assert isinstance(gm, torch.distributions.Distribution)
+    assert gm.support is torch.distributions.constraints.real_vector
+    for name, constraint in gm.arg_constraints.items():
+        assert bool(constraint.check(getattr(gm, name)).all()), name
+    assert gm.batch_shape == (2,) and gm.event_shape == (2,)
+    batch, event = GaussianMixture.infer_shapes(
+        weights=(5, 3), means=(1, 3, 2), covariances=(3, 2, 2)
+    )
+    assert batch == (5,) and event == (2,)
+    assert not gm.has_rsample
+    with pytest.raises(NotImplementedError):
+        gm.rsample()
+
+
+def test_expand_broadcasts_without_changing_the_density():
+    gm = random_mixture(k=2, d=3, seed=4)
+    _ = gm.scale_tril  # a cached factor must be expanded too
+    big = gm.expand((4, 5))
+    assert big.batch_shape == (4, 5) and big.event_shape == (3,)
+    x = torch.randn(4, 5, 3, dtype=torch.float64)
+    torch.testing.assert_close(big.log_prob(x), gm.log_prob(x))
+    assert big.sample((2,), generator=torch.Generator().manual_seed(0)).shape == (2, 4, 5, 3)
+    torch.testing.assert_close(big.mean, gm.mean.expand(4, 5, 3))
+
+
+def test_variance_is_the_diagonal_of_the_mixture_covariance():
+    gm = random_mixture(k=3, d=2, seed=6)
+    x = gm.sample((40000,), generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(gm.variance, gm.covariance_matrix.diagonal(), rtol=0, atol=0)
+    torch.testing.assert_close(x.var(0), gm.variance, rtol=0.05, atol=0)
+    torch.testing.assert_close(gm.stddev, gm.variance.sqrt())
+
+
+def test_dtype_follows_the_parameters():
+    gm32 = random_mixture(seed=1).to(torch.float32)
+    assert gm32.dtype == torch.float32
+    assert gm32.sample((3,), generator=torch.Generator().manual_seed(0)).dtype == torch.float32
+    assert gm32.log_prob(torch.zeros(3, dtype=torch.float32)).dtype == torch.float32
+    assert gm32.condition([0], torch.zeros(1)).dtype == torch.float32
+    # Mixed parameters promote, as torch.distributions' broadcast_all does.
+    mixed = GaussianMixture(
+        torch.ones(2, dtype=torch.float64), torch.zeros(2, 1), torch.ones(2, 1, 1)
+    )
+    assert mixed.dtype == mixed.weights.dtype == mixed.covariances.dtype == torch.float64
+    counts = GaussianMixture(torch.tensor([1, 3]), torch.zeros(2, 1), torch.ones(2, 1, 1))
+    assert counts.dtype == torch.float32 and counts.weights.tolist() == [0.25, 0.75]
+
+
+def test_value_validation_follows_validate_args():
+    gm = random_mixture(batch=(2,), d=3)
+    with pytest.raises(ValueError, match="event dim 3"):
+        gm.log_prob(torch.zeros(2, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="broadcastable"):
+        gm.log_prob(torch.zeros(3, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="support"):
+        gm.log_prob(torch.full((2, 3), float("nan"), dtype=torch.float64))
+    lax = GaussianMixture(gm.weights, gm.means, gm.covariances, validate_args=False)
+    assert torch.isnan(lax.log_prob(torch.full((2, 3), float("nan"), dtype=torch.float64))).all()
+    # Derived mixtures keep the parent's setting.
+    assert not lax.marginal([0])._validate_args and gm.marginal([0])._validate_args
+    # None follows torch.distributions' global default.
+    torch.distributions.Distribution.set_default_validate_args(False)
+    try:
+        quiet = GaussianMixture(torch.ones(1), torch.zeros(1, 1), -torch.ones(1, 1, 1))
+        assert not quiet._validate_args
+    finally:
+        torch.distributions.Distribution.set_default_validate_args(True)
+
+
+def test_usable_in_pyro_sample_and_under_a_plate():
+    import pyro
+    import pyro.poutine as poutine
+
+    gm = random_mixture(k=3, d=2, seed=7)
+    observed = torch.randn(6, 2, dtype=torch.float64)
+
+    def model():
+        theta = pyro.sample("theta", gm)
+        with pyro.plate("data", 6):
+            pyro.sample("x", gm, obs=observed)
+        return theta
+
+    pyro.set_rng_seed(0)
+    trace = poutine.trace(model).get_trace()
+    theta = trace.nodes["theta"]["value"]
+    assert theta.shape == (2,) and theta.dtype == torch.float64
+    assert trace.nodes["x"]["fn"].batch_shape == (6,)  # expanded by the plate
+    expected = gm.log_prob(theta) + gm.log_prob(observed).sum()
+    torch.testing.assert_close(trace.log_prob_sum(), expected)
+    pyro.set_rng_seed(0)
+    assert torch.equal(poutine.trace(model).get_trace().nodes["theta"]["value"], theta)
+
+
+def test_kl_divergence_is_registered_for_single_components():
+    from torch.distributions import MultivariateNormal, kl_divergence
+
+    p = random_mixture(batch=(3,), k=1, d=2, seed=1)
+    q = random_mixture(k=1, d=2, seed=2)
+    p_normal = MultivariateNormal(p.means[:, 0], p.covariances[:, 0])
+    q_normal = MultivariateNormal(q.means[0], q.covariances[0])
+    expected = kl_divergence(p_normal, q_normal)
+    assert expected.shape == (3,) and (expected > 0).all()
+    torch.testing.assert_close(kl_divergence(p, q), expected)
+    torch.testing.assert_close(kl_divergence(p, q_normal), expected)
+    torch.testing.assert_close(kl_divergence(p_normal, q), expected)
+    assert torch.allclose(kl_divergence(q, q), torch.zeros((), dtype=q.dtype), atol=1e-12)
+    with pytest.raises(NotImplementedError, match="no closed form"):
+        kl_divergence(random_mixture(k=2, d=2), q)
