@@ -1,0 +1,301 @@
+"""The generative model behind the DP mixture, written as a Pyro model.
+
+Neal's Algorithm 8 (:func:`dipole_torch.neal8_sweep`, with ``reward_weighted=False`` and H
+held fixed) is a Gibbs sampler for the posterior of this model:
+
+* labels c_1..c_N from the Chinese restaurant process with concentration α: c_1 = 0 and
+  c_i | c_<i takes an existing table k with probability n_k / (i − 1 + α) or opens table K
+  with probability α / (i − 1 + α) (labels in order of first appearance);
+* for each of the K tables, independently, μ_k ~ N(μ0, Σ0) and Σ_k ~ IW(ν0, Ψ0) (the
+  non-linked base distribution H, :class:`~dipole_torch.NormalInverseWishartPrior`);
+* y_i ~ N(μ_{c_i}, Σ_{c_i} + R), R the prior's regularisation.
+
+:func:`dp_mixture_model` is that model for ``pyro.poutine`` (trace, condition, replay);
+:func:`dp_log_joint` is its log joint density written out in closed form (the CRP's
+exchangeable partition probability and H's densities), which is what the sampler's
+conditionals are derived from. ``tests/test_pyro_model.py`` checks that the two agree, that
+the sampler's μ and Σ conditionals are ratios of this joint, and runs a Geweke
+joint-distribution test of the whole sweep against forward draws of this model.
+
+DIPOLE's reward weighting (eq. 6) multiplies the label probabilities by r_c: that chain has
+no generative model of this form, so only the unweighted sampler is checked against it.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from contextlib import nullcontext
+
+import pyro
+import pyro.poutine as poutine
+import torch
+from pyro.distributions import Categorical, MultivariateNormal, TorchDistribution
+from torch import Tensor
+from torch.distributions import Wishart, constraints
+
+from dipole_torch.dp_mixture import DPMixtureState
+from dipole_torch.prior import NormalInverseWishartPrior
+from dipole_torch.sampling import draw
+
+__all__ = [
+    "InverseWishart",
+    "canonical_state",
+    "dp_log_joint",
+    "dp_mixture_model",
+    "state_from_trace",
+    "state_sites",
+]
+
+
+class InverseWishart(TorchDistribution):
+    """Σ ~ IW(ν, Ψ) over D × D symmetric positive-definite matrices.
+
+    Density (Ψ the scale, E[Σ] = Ψ / (ν − D − 1) for ν > D + 1)::
+
+        log p(Σ) = ν/2 log|Ψ| − νD/2 log 2 − log Γ_D(ν/2) − (ν + D + 1)/2 log|Σ|
+                   − ½ tr(Ψ Σ⁻¹)
+
+    Draws are Σ = W⁻¹ with ``W ~ torch.distributions.Wishart(df=ν, precision_matrix=Ψ)``,
+    the convention of :class:`~dipole_torch.NormalInverseWishartPrior`.
+
+    Args:
+        df: scalar or ``[...]`` degrees of freedom ν > D − 1.
+        scale: ``[..., D, D]`` symmetric positive-definite scale Ψ.
+        validate_args: as for ``torch.distributions``.
+    """
+
+    arg_constraints = {"df": constraints.positive, "scale": constraints.positive_definite}
+    support = constraints.positive_definite
+    has_rsample = False
+
+    def __init__(self, df: Tensor | float, scale: Tensor, validate_args: bool | None = None):
+        if scale.dim() < 2 or scale.shape[-1] != scale.shape[-2]:
+            raise ValueError(f"scale must have shape [..., D, D], got {list(scale.shape)}")
+        d = scale.shape[-1]
+        df = torch.as_tensor(df, dtype=scale.dtype, device=scale.device)
+        if not bool((df > d - 1).all()):
+            raise ValueError(f"df must exceed D - 1 = {d - 1}, got {df.tolist()}")
+        batch = torch.broadcast_shapes(df.shape, scale.shape[:-2])
+        self.df = df.expand(batch)
+        self.scale = scale.expand(*batch, d, d)
+        super().__init__(torch.Size(batch), torch.Size((d, d)), validate_args=validate_args)
+
+    def expand(self, batch_shape, _instance=None) -> InverseWishart:
+        new = self._get_checked_instance(InverseWishart, _instance)
+        batch_shape = torch.Size(batch_shape)
+        new.df = self.df.expand(batch_shape)
+        new.scale = self.scale.expand(*batch_shape, *self.event_shape)
+        super(InverseWishart, new).__init__(batch_shape, self.event_shape, validate_args=False)
+        new._validate_args = self._validate_args
+        return new
+
+    @property
+    def mean(self) -> Tensor:
+        """``[..., D, D]`` Ψ / (ν − D − 1) (infinite for ν ≤ D + 1)."""
+        d = self.event_shape[-1]
+        return self.scale / (self.df - d - 1)[..., None, None]
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """``[...]`` log density at ``value: [..., D, D]``."""
+        if self._validate_args:
+            self._validate_sample(value)
+        d = self.event_shape[-1]
+        df = self.df
+        chol = torch.linalg.cholesky(value)
+        log_det_value = 2.0 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        log_det_scale = torch.linalg.slogdet(self.scale)[1]
+        trace = torch.cholesky_solve(self.scale.expand_as(value), chol)
+        trace = trace.diagonal(dim1=-2, dim2=-1).sum(-1)
+        return (
+            0.5 * df * log_det_scale
+            - 0.5 * df * d * math.log(2.0)
+            - torch.mvlgamma(0.5 * df, p=d)
+            - 0.5 * (df + d + 1) * log_det_value
+            - 0.5 * trace
+        )
+
+    def sample(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
+        """``[*sample_shape, *batch_shape, D, D]`` draws, reproducible from ``generator``."""
+        wishart = Wishart(df=self.df, precision_matrix=self.scale, validate_args=False)
+        with warnings.catch_warnings():
+            # torch's Wishart.rsample tests its draws with an inverted flag, warns "Singular
+            # sample detected" for valid ones and redraws them once: still exact, just noisy.
+            warnings.filterwarnings("ignore", "Singular sample detected")
+            precision = draw(wishart, torch.Size(sample_shape), generator)
+        covariance = torch.cholesky_inverse(torch.linalg.cholesky(precision))
+        return 0.5 * (covariance + covariance.transpose(-1, -2))
+
+
+def dp_mixture_model(
+    prior: NormalInverseWishartPrior,
+    alpha: float,
+    num_points: int | None = None,
+    data: Tensor | None = None,
+    num_draws: int | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The DP Gaussian mixture as a Pyro model (CRP labels, non-linked H, data in a plate).
+
+    N points sit at no more than N tables, so the model keeps N component slots: slot k < K
+    (K the number of tables opened) holds table k's parameters, and the slots beyond are
+    masked out of the density (``poutine.mask``). The log joint is therefore exact, not a
+    truncation, and the model vectorises over independent draws (``num_draws``).
+
+    Sites (B = ``num_draws``; without it the leading ``[B]`` and ``[B, 1]`` are absent):
+
+    * ``label_0`` … ``label_{N-1}``: ``[B, 1]`` CRP labels, ``Categorical`` with probabilities
+      n_k / (i + α) for the K open tables and α / (i + α) for table K;
+    * in the plate ``components`` (N slots): ``means`` ``[B, N, D]`` ~ N(μ0, Σ0) and
+      ``covariances`` ``[B, N, D, D]`` ~ IW(ν0, Ψ0) (Σ_k without the regularisation);
+    * in the plate ``data`` (N points): ``y`` ``[B, N, D]`` ~ N(μ_{c_i}, Σ_{c_i} + R).
+
+    Condition on :func:`state_sites` to score a sampler state; run it unconditioned for
+    forward draws (:func:`state_from_trace` turns a trace back into a state).
+
+    Args:
+        prior: the base distribution H (held fixed).
+        alpha: DP concentration α > 0.
+        num_points: N; taken from ``data`` when that is given.
+        data: ``[N, D]`` observed y (``[B, N, D]`` with ``num_draws``), or ``None``.
+        num_draws: run B independent copies of the model in a plate ``draws`` (dim −2).
+
+    Returns:
+        labels ``[B, N]``, slot means ``[B, N, D]``, slot covariances ``[B, N, D, D]``
+        (Σ + R, as the sampler stores them) and y ``[B, N, D]``.
+    """
+    if not alpha > 0:
+        raise ValueError(f"alpha must be positive, got {alpha}")
+    d = prior.dim
+    if data is not None:
+        if data.dim() < 2 or data.shape[-1] != d:
+            raise ValueError(f"data must have shape [N, {d}], got {list(data.shape)}")
+        num_points = data.shape[-2] if num_points is None else num_points
+        if num_points != data.shape[-2]:
+            raise ValueError(f"num_points={num_points} but data has {data.shape[-2]} rows")
+    if num_points is None or num_points < 1:
+        raise ValueError(f"num_points must be a positive integer, got {num_points}")
+    n = num_points
+    dtype, device = prior.mean_loc.dtype, prior.mean_loc.device
+    draws = pyro.plate("draws", num_draws, dim=-2) if num_draws is not None else nullcontext()
+    with draws:
+        slots = torch.arange(n, device=device)
+        counts = torch.zeros(n, dtype=dtype, device=device)
+        tables = torch.zeros((), dtype=torch.long, device=device)
+        labels = []
+        for i in range(n):
+            # [..., N] CRP weights: n_k for the open tables, α for the next, 0 beyond.
+            weights = torch.where(slots < tables[..., None], counts, 0.0)
+            weights = torch.where(slots == tables[..., None], alpha, weights)
+            label = pyro.sample(f"label_{i}", Categorical(probs=weights / (i + alpha)))
+            counts = counts + (slots == label[..., None]).to(dtype)
+            tables = torch.maximum(tables, label + 1)
+            labels.append(label)
+        labels = torch.cat([label.reshape(-1, 1) for label in labels], -1)  # [B or 1, N]
+        if num_draws is None:
+            labels = labels[0]
+        with pyro.plate("components", n, dim=-1), poutine.mask(mask=slots < tables[..., None]):
+            means = pyro.sample("means", MultivariateNormal(prior.mean_loc, prior.mean_covariance))
+            sigmas = pyro.sample("covariances", InverseWishart(prior.df, prior.scale))
+        covariances = sigmas + prior.regularization
+        point_means = torch.take_along_dim(means, labels[..., None], dim=-2)
+        point_covariances = torch.take_along_dim(covariances, labels[..., None, None], dim=-3)
+        with pyro.plate("data", n, dim=-1):
+            y = pyro.sample("y", MultivariateNormal(point_means, point_covariances), obs=data)
+    return labels, means, covariances, y
+
+
+def canonical_state(state: DPMixtureState) -> DPMixtureState:
+    """The same state with components renumbered in order of first appearance in the labels
+    (the CRP's labelling; the partition and parameters are unchanged)."""
+    labels = state.labels
+    first = torch.full((state.num_components,), labels.numel(), dtype=torch.long)
+    positions = torch.arange(labels.numel(), dtype=torch.long)
+    first = first.scatter_reduce(0, labels.cpu(), positions, "amin")
+    order = torch.argsort(first).to(labels.device)  # order[new] = old
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(order.numel(), device=labels.device)
+    return DPMixtureState(
+        labels=rank[labels],
+        means=state.means[order],
+        covariances=state.covariances[order],
+        prior=state.prior,
+    )
+
+
+def state_sites(state: DPMixtureState, y: Tensor | None = None) -> dict[str, Tensor]:
+    """Site values of :func:`dp_mixture_model` for a sampler state (to ``poutine.condition``).
+
+    Components are renumbered in order of first appearance (:func:`canonical_state`); the
+    N − K unused slots get H's mean and expected covariance (masked out of the density).
+
+    Args:
+        state: labels ``[N]``, means ``[K, D]``, covariances ``[K, D, D]`` (Σ + R).
+        y: ``[N, D]`` data, included as site ``y`` when given.
+    """
+    state = canonical_state(state)
+    prior = state.prior
+    n, k, d = state.labels.numel(), state.num_components, prior.dim
+    means = prior.mean_loc.expand(n, d).clone()
+    sigmas = prior.expected_covariance.expand(n, d, d).clone()
+    means[:k] = state.means
+    sigmas[:k] = state.covariances - prior.regularization
+    sites = {f"label_{i}": label for i, label in enumerate(state.labels)}
+    sites["means"] = means
+    sites["covariances"] = sigmas
+    if y is not None:
+        sites["y"] = y
+    return sites
+
+
+def state_from_trace(trace: pyro.poutine.Trace, prior: NormalInverseWishartPrior) -> DPMixtureState:
+    """The sampler state of an unbatched :func:`dp_mixture_model` trace (the K used slots,
+    covariances with R added)."""
+    num_points = sum(1 for name in trace.nodes if name.startswith("label_"))
+    labels = torch.stack([trace.nodes[f"label_{i}"]["value"] for i in range(num_points)])
+    if labels.dim() != 1:
+        raise ValueError("state_from_trace takes a trace without num_draws")
+    k = int(labels.max()) + 1
+    return DPMixtureState(
+        labels=labels.long(),
+        means=trace.nodes["means"]["value"][:k],
+        covariances=trace.nodes["covariances"]["value"][:k] + prior.regularization,
+        prior=prior,
+    )
+
+
+def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
+    """log p(labels, μ, Σ, y) of the model, in closed form, for a sampler state.
+
+    log α^K Γ(α) / Γ(α + N) Π_k Γ(n_k)  (the CRP's exchangeable partition probability)
+    + Σ_k [log N(μ_k; μ0, Σ0) + log IW(Σ_k; ν0, Ψ0)] + Σ_i log N(y_i; μ_{c_i}, Σ_{c_i} + R).
+
+    Args:
+        y: ``[N, D]`` data.
+        state: labels ``[N]`` (any numbering), means ``[K, D]``, covariances ``[K, D, D]``
+            (Σ + R), and H.
+        alpha: DP concentration α.
+
+    Returns:
+        A scalar tensor. −inf where some Σ_k = covariances_k − R is not positive definite.
+    """
+    prior = state.prior
+    counts = state.counts.to(prior.mean_loc.dtype)
+    if bool((counts == 0).any()):
+        raise ValueError("state has empty components; the model has none")
+    k, n = counts.numel(), counts.sum()
+    alpha_t = torch.as_tensor(alpha, dtype=counts.dtype, device=counts.device)
+    partition = (
+        k * alpha_t.log()
+        + torch.lgamma(alpha_t)
+        - torch.lgamma(alpha_t + n)
+        + torch.lgamma(counts).sum()
+    )
+    mean_term = prior.mean_distribution().log_prob(state.means).sum()
+    sigmas = state.covariances - prior.regularization
+    if bool((torch.linalg.cholesky_ex(sigmas)[1] != 0).any()):
+        return torch.full((), -math.inf, dtype=counts.dtype, device=counts.device)
+    covariance_term = InverseWishart(prior.df, prior.scale).log_prob(sigmas).sum()
+    likelihood = MultivariateNormal(
+        state.means[state.labels], state.covariances[state.labels], validate_args=False
+    ).log_prob(y.to(counts.dtype))
+    return partition + mean_term + covariance_term + likelihood.sum()
