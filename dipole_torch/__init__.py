@@ -8,9 +8,11 @@ from dipole_torch.dp_mixture import (
     reward_weights,
 )
 from dipole_torch.gaussian_mixture import GaussianMixture
+from dipole_torch.mcmc import Neal8Kernel
 from dipole_torch.optimizer import Dipole, PolicySearch, Power
 from dipole_torch.power import importance_sets, power_update
 from dipole_torch.prior import NormalInverseWishartPrior
+from dipole_torch.pyro_model import InverseWishart, dp_log_joint, dp_mixture_model
 from dipole_torch.reward import RewardScale
 from dipole_torch.sampling import draw
 
@@ -19,10 +21,14 @@ __all__ = [
     "DPMixtureState",
     "Dipole",
     "GaussianMixture",
+    "InverseWishart",
+    "Neal8Kernel",
     "NormalInverseWishartPrior",
     "PolicySearch",
     "Power",
     "RewardScale",
+    "dp_log_joint",
+    "dp_mixture_model",
     "draw",
     "fit_dp_mixture",
     "importance_sets",

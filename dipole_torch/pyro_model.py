@@ -294,7 +294,7 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
     sigmas = state.covariances - prior.regularization
     if bool((torch.linalg.cholesky_ex(sigmas)[1] != 0).any()):
         return torch.full((), -math.inf, dtype=counts.dtype, device=counts.device)
-    covariance_term = InverseWishart(prior.df, prior.scale).log_prob(sigmas).sum()
+    covariance_term = InverseWishart(prior.df, prior.scale.to(sigmas)).log_prob(sigmas).sum()
     likelihood = MultivariateNormal(
         state.means[state.labels], state.covariances[state.labels], validate_args=False
     ).log_prob(y.to(counts.dtype))
