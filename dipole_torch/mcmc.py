@@ -202,6 +202,8 @@ class Neal8Kernel(MCMCKernel):
             "num_components": k,
             "labels": canonical.labels.to(DTYPE),
             "point_means": canonical.means[canonical.labels],
-            "log_joint": dp_log_joint(self._y, state, self.alpha),
         }
+        # MCMC(save_params=...) sets save_params: the log joint only when it is kept.
+        if "log_joint" in getattr(self, "save_params", ("log_joint",)):
+            self._params["log_joint"] = dp_log_joint(self._y, state, self.alpha)
         return self._params

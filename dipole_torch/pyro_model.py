@@ -295,7 +295,8 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
     if bool((torch.linalg.cholesky_ex(sigmas)[1] != 0).any()):
         return torch.full((), -math.inf, dtype=counts.dtype, device=counts.device)
     covariance_term = InverseWishart(prior.df, prior.scale.to(sigmas)).log_prob(sigmas).sum()
-    likelihood = MultivariateNormal(
-        state.means[state.labels], state.covariances[state.labels], validate_args=False
-    ).log_prob(y.to(counts.dtype))
-    return partition + mean_term + covariance_term + likelihood.sum()
+    # K factorisations rather than N: every point under every component, then its own.
+    components = MultivariateNormal(state.means, state.covariances, validate_args=False)
+    log_lik = components.log_prob(y.to(counts.dtype).unsqueeze(-2))  # [N, K]
+    likelihood = log_lik.gather(-1, state.labels.unsqueeze(-1)).sum()
+    return partition + mean_term + covariance_term + likelihood
