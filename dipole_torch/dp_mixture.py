@@ -10,13 +10,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.distributions import MultivariateNormal
 
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.sampling import draw, draw_categorical
+from dipole_torch.sampling import draw_categorical, draw_categorical_numpy
 from dipole_torch.validation import check_finite, check_matrix_shape
 
 DTYPE = torch.float64
@@ -108,8 +109,41 @@ class DPMixtureState:
         )
 
 
+class RewardRegression:
+    """E[w | θ] under a Gaussian mixture over y = [θ, w] (GMR), prepared once for many queries.
+
+    The same regression as ``GaussianMixture.condition(θ_dims, θ).mean`` without building
+    distribution objects: a sweep queries it for K component means and N·m auxiliary ones,
+    and the objects' construction (shape broadcasting, validation) cost more than the maths.
+
+    Args:
+        weights: ``[K]`` mixing weights (any positive scale; e.g. the component sizes).
+        means: ``[K, D + 1]`` component means.
+        covariances: ``[K, D + 1, D + 1]`` component covariances.
+    """
+
+    def __init__(self, weights: Tensor, means: Tensor, covariances: Tensor):
+        d = means.shape[-1] - 1
+        self.means = means
+        self.log_weights = (weights / weights.sum()).log()
+        self.mean_theta, self.mean_w = means[:, :d], means[:, d]
+        self.tril = torch.linalg.cholesky(covariances[:, :d, :d])  # [K, D, D]
+        # gain_k = Σ_θθ⁻¹ Σ_θw: E[w | θ, k] = μ_w + gain_kᵀ (θ − μ_θ).
+        cross = covariances[:, :d, d:]
+        self.gain = torch.cholesky_solve(cross, self.tril).squeeze(-1)  # [K, D]
+
+    def predict(self, theta: Tensor) -> Tensor:
+        """``[...]`` E[w | θ] for ``theta: [..., D]``."""
+        diff = theta.unsqueeze(-2) - self.mean_theta  # [..., K, D]
+        log_resp = torch.log_softmax(
+            self.log_weights + _log_prob_tril(diff, 0.0, self.tril), dim=-1
+        )
+        conditional = self.mean_w + (self.gain * diff).sum(-1)  # [..., K]
+        return (log_resp.exp() * conditional).sum(-1)
+
+
 def reward_weights(
-    mixture: GaussianMixture,
+    mixture: GaussianMixture | RewardRegression,
     query_means: Tensor,
     floor: float | None = None,
     weights: Tensor | None = None,
@@ -132,7 +166,8 @@ def reward_weights(
     rewards). ``floor``, when given, replaces the lower bound by an absolute one.
 
     Args:
-        mixture: the IGMM over ``[θ, r]`` (event dim D + 1).
+        mixture: the IGMM over ``[θ, r]`` (event dim D + 1), or its prepared
+            :class:`RewardRegression`.
         query_means: ``[..., D + 1]`` component means whose θ-part is queried.
         floor: optional absolute lower bound on r_c.
         weights: ``[N]`` the data's reward weights (the last column of y).
@@ -140,8 +175,10 @@ def reward_weights(
     Returns:
         ``[...]`` log r_c.
     """
-    d = mixture.event_shape[0] - 1
-    predicted = mixture.condition(range(d), query_means[..., :d]).mean[..., 0]
+    if not isinstance(mixture, RewardRegression):
+        mixture = RewardRegression(mixture.weights, mixture.means, mixture.covariances)
+    d = mixture.means.shape[-1] - 1
+    predicted = mixture.predict(query_means[..., :d])
     reference = (weights if weights is not None else mixture.means[..., -1]).to(predicted)
     # The smallest normal float only matters for all-zero rewards, where eq. 6 is void.
     low = (1e-12 * reference.abs().max()).clamp_min(torch.finfo(predicted.dtype).tiny)
@@ -180,10 +217,15 @@ def neal8_sweep(
        samples the DP mixture posterior under that H.
 
     Component parameters are fixed during step 1 (as in Algorithm 8), so the likelihoods of
-    all points under all components, and under their auxiliary draws, are computed in a few
-    batched calls before the per-point loop; r_c likewise comes from the mixture at the start
-    of the sweep, clamped to the range of the data's reward weights ``y[:, -1]``
-    (:func:`reward_weights`). The loop itself does O(K) work per point.
+    all points under the sweep's starting components are computed in one batched call before
+    the per-point loop; r_c likewise comes from the mixture at the start of the sweep, clamped
+    to the range of the data's reward weights ``y[:, -1]`` (:func:`reward_weights`). The
+    auxiliary draws and their likelihoods are made in chunks of points (at most ~64 MB of
+    ``[chunk, m, D, D]`` covariances, so memory does not grow with N·m), and a component
+    opened at point i gets its likelihood column only for the points after i. The loop itself
+    does O(K + m) work per point: on CPU in numpy (:func:`_label_pass_numpy`), on other
+    devices with tensor ops that never wait for the device (:func:`_label_pass_sync_free`).
+    Both make the same draws from the same uniforms.
 
     Args:
         y: ``[N, D]`` data (for DIPOLE, ``[θ, r]`` with the positive reward weight last).
@@ -206,68 +248,33 @@ def neal8_sweep(
     y = y.to(DTYPE)
     n, d = y.shape
     prior = state.prior
-    labels = state.labels.clone()
-    updates: list[tuple[int, Tensor, Tensor]] = []  # (slot, mean, covariance) of new components
-    k = state.num_components
-    capacity = max(2 * k, 8)
-    log_lik = torch.full((n, capacity), -math.inf, dtype=DTYPE, device=y.device)
-    log_lik[:, :k] = _gaussian_log_prob(y[:, None, :], state.means, state.covariances)
-    log_r = torch.zeros(capacity, dtype=DTYPE, device=y.device)
-    counts = torch.zeros(capacity, dtype=DTYPE, device=y.device)
-    counts[:k] = torch.bincount(labels, minlength=k).to(DTYPE)
-
-    # Auxiliary parameters for every point, drawn from H up front: [N, m, D], [N, m, D, D].
-    aux_means, aux_covs = prior.sample(n * m, generator)
-    aux_means = aux_means.reshape(n, m, d)
-    aux_covs = aux_covs.reshape(n, m, d, d)
-    aux_log_lik = _gaussian_log_prob(y[:, None, :], aux_means, aux_covs)  # [N, m]
-    aux_log_r = torch.zeros(n, m, dtype=DTYPE, device=y.device)
+    log_r = torch.zeros(state.num_components, dtype=DTYPE, device=y.device)
+    weights = y[:, -1]
     if reward_weighted:
-        current = state.mixture()
-        log_r[:k] = reward_weights(current, state.means, weights=y[:, -1])
-        aux_log_r = reward_weights(current, aux_means, weights=y[:, -1])
+        counts = torch.bincount(state.labels, minlength=state.num_components).to(DTYPE)
+        current = RewardRegression(counts, state.means, state.covariances)
+        log_r = reward_weights(current, state.means, weights=weights)
     log_aux_prior = math.log(alpha / m)
     uniforms = _uniforms(n, generator, y.device)
 
-    for i in range(n):
-        c = int(labels[i])
-        counts[c] -= 1
-        aux_ll = aux_log_lik[i]
-        aux_lr = aux_log_r[i]
-        singleton = counts[c] == 0
-        if singleton:
-            # Algorithm 8: a singleton's parameters become the first auxiliary component.
-            aux_ll = aux_ll.clone()
-            aux_lr = aux_lr.clone()
-            aux_ll[0] = log_lik[i, c]
-            aux_lr[0] = log_r[c]
-        logits = torch.cat(
-            (counts[:k].log() + log_r[:k] + log_lik[i, :k], log_aux_prior + aux_lr + aux_ll)
-        )
-        choice = int(draw_categorical(logits, uniforms[i]))
-        if choice < k:
-            new = choice
-        elif singleton and choice == k:
-            new = c  # kept its own parameters
-        else:
-            j = choice - k
-            new = c if singleton else _free_slot(counts, k)
-            if new == k:
-                k += 1
-                if k > capacity:
-                    capacity *= 2
-                    log_lik = _grow(log_lik, capacity, -math.inf)
-                    log_r = _grow(log_r, capacity, 0.0)
-                    counts = _grow(counts, capacity, 0.0)
-            mean_j, cov_j = aux_means[i, j], aux_covs[i, j]
-            updates.append((new, mean_j, cov_j))
-            log_lik[:, new] = _gaussian_log_prob(y, mean_j, cov_j)
-            log_r[new] = aux_lr[j]
-        labels[i] = new
-        counts[new] += 1
+    def auxiliary(start: int, stop: int) -> _Auxiliary:
+        """m fresh draws from H for each point of ``y[start:stop]``, with their scores."""
+        size = stop - start
+        means, covs = prior.sample(size * m, generator)
+        means, covs = means.reshape(size, m, d), covs.reshape(size, m, d, d)
+        tril = torch.linalg.cholesky(covs)
+        log_lik = _log_prob_tril(y[start:stop, None, :], means, tril)
+        aux_log_r = torch.zeros_like(log_lik)
+        if reward_weighted:
+            aux_log_r = reward_weights(current, means, weights=weights)
+        return _Auxiliary(means, covs, tril, aux_log_r, log_aux_prior + aux_log_r + log_lik)
 
-    all_means, all_covs = _collect(state.means, state.covariances, updates, k)
-    occupied = counts[:k] > 0
+    chunk = _chunk_size(n, m, d)
+    label_pass = _label_pass_numpy if y.device.type == "cpu" else _label_pass_sync_free
+    labels, all_means, all_covs, counts = label_pass(
+        y, state, log_r, auxiliary, uniforms, log_aux_prior, chunk
+    )
+    occupied = counts > 0
     remap = torch.cumsum(occupied.long(), 0) - 1
     labels = remap[labels]
     new_state = DPMixtureState(labels, all_means[occupied], all_covs[occupied], prior)
@@ -320,7 +327,8 @@ def resample_parameters(
     residuals = _residual_sums(y, labels, prior.mean_loc, k)
     means, covs = state.means, state.covariances
     for _ in range(steps):
-        means = draw(_mean_conditional(prior, covs, counts, residuals), (), generator)
+        loc, precision_tril = _mean_conditional(prior, covs, counts, residuals)
+        means = _draw_normal_precision(loc, precision_tril, generator)
         scatter = _scatter(y, labels, means)
         covs = _covariance_step(prior, covs, counts, scatter, generator, exact_covariance)[0]
     return replace(state, means=means, covariances=covs)
@@ -347,7 +355,7 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
     dof = (prior.df + counts - prior.dim - 1)[:, None, None]
     covs = (prior.scale + scatter) / dof + prior.regularization
     residuals = _residual_sums(y, labels, prior.mean_loc, k)
-    means = _mean_conditional(prior, covs, counts, residuals).mean
+    means = _mean_conditional(prior, covs, counts, residuals)[0]
     return replace(state, means=means, covariances=covs)
 
 
@@ -438,29 +446,34 @@ def sequential_labels(
     cov = prior.expected_covariance + prior.regularization
     chol = torch.linalg.cholesky(cov)
     new_log_lik = _gaussian_log_prob(y, prior.mean_loc, prior.mean_covariance + cov)  # [N]
-    sums = torch.zeros(n, d, dtype=DTYPE, device=y.device)
-    counts = torch.zeros(n, dtype=DTYPE, device=y.device)
-    labels = torch.empty(n, dtype=torch.long, device=y.device)
-    uniforms = _uniforms(n, generator, y.device)
+    uniforms = _uniforms(n, generator, y.device).tolist()
     log_alpha = math.log(alpha)
     where = generator.device if generator is not None else y.device
     order = torch.randperm(n, generator=generator, device=where).tolist()
+    # The per-point work in numpy, in coordinates whitened by chol (z = L⁻¹ (y − ȳ), centred
+    # first so that large offsets cancel): log N(y; ȳ_c, s C) = −½ (‖z − z̄_c‖² / s
+    # + D log s + log|2π C|) with s = 1 + 1/n_c.
+    z = torch.linalg.solve_triangular(chol, (y - _mean(y)).T, upper=False).T.cpu().numpy()
+    const = -0.5 * d * _LOG_2PI - float(chol.diagonal().log().sum())
+    new_log_lik = new_log_lik.cpu().numpy()
+    sums = np.zeros((n, d))
+    counts = np.zeros(n)
+    labels = np.empty(n, dtype=np.int64)
+    logits = np.empty(n + 1)
     k = 0
     for i in order:
-        existing = torch.empty(0, dtype=DTYPE, device=y.device)
         if k > 0:
-            means = sums[:k] / counts[:k, None]
-            inflation = (1.0 + 1.0 / counts[:k]).sqrt()[:, None, None]
-            existing = MultivariateNormal(
-                means, scale_tril=inflation * chol, validate_args=False
-            ).log_prob(y[i])
-        logits = torch.cat((counts[:k].log() + existing, (log_alpha + new_log_lik[i])[None]))
-        c = int(draw_categorical(logits, uniforms[i]))
+            inflation = 1.0 + 1.0 / counts[:k]
+            distance = np.square(z[i] - sums[:k] / counts[:k, None]).sum(1)
+            existing = const - 0.5 * (distance / inflation + d * np.log(inflation))
+            np.add(np.log(counts[:k]), existing, out=logits[:k])
+        logits[k] = log_alpha + new_log_lik[i]
+        c = draw_categorical_numpy(logits[: k + 1], uniforms[i])
         k = max(k, c + 1)
         labels[i] = c
-        sums[c] += y[i]
+        sums[c] += z[i]
         counts[c] += 1
-    return labels
+    return torch.as_tensor(labels, device=y.device)
 
 
 class DPMixture:
@@ -543,31 +556,264 @@ def _gaussian_log_prob(value: Tensor, means: Tensor, covariances: Tensor) -> Ten
     )
 
 
-def _free_slot(counts: Tensor, k: int) -> int:
-    empty = (counts[:k] == 0).nonzero()
-    return int(empty[0]) if empty.numel() else k
+def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
+    """``[...]`` log N(value; mean, L Lᵀ) from the Cholesky factor ``tril: [..., D, D]``
+    (``value``, ``mean``: ``[..., D]``; all broadcast)."""
+    diff = (value - mean).unsqueeze(-1)
+    tril = tril.expand(*diff.shape[:-2], *tril.shape[-2:])
+    z = torch.linalg.solve_triangular(tril, diff, upper=False).squeeze(-1)
+    log_det = tril.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    return -0.5 * (z.square().sum(-1) + tril.shape[-1] * _LOG_2PI) - log_det
 
 
-def _grow(tensor: Tensor, capacity: int, fill: float) -> Tensor:
-    shape = (*tensor.shape[:-1], capacity)
-    grown = torch.full(shape, fill, dtype=tensor.dtype, device=tensor.device)
-    grown[..., : tensor.shape[-1]] = tensor
-    return grown
+_LOG_2PI = math.log(2.0 * math.pi)
+_AUX_CHUNK_BYTES = 2**26  # auxiliary covariances and their factors held at once (64 MB)
 
 
-def _collect(
-    means: Tensor, covs: Tensor, updates: list[tuple[int, Tensor, Tensor]], k: int
+def _chunk_size(n: int, m: int, d: int) -> int:
+    """Points whose ``[m, D, D]`` auxiliary covariances and factors fit _AUX_CHUNK_BYTES."""
+    return max(1, min(n, _AUX_CHUNK_BYTES // (2 * 8 * m * d * d)))
+
+
+@dataclass
+class _Auxiliary:
+    """The auxiliary components of a chunk of C points: ``means [C, m, D]``, ``covs`` and
+    their Cholesky factors ``tril [C, m, D, D]``, ``log_r [C, m]`` (log r_c, 0 unweighted) and
+    ``score [C, m]`` = log(α/m) + log r_c + log N(y_i; μ, Σ)."""
+
+    means: Tensor
+    covs: Tensor
+    tril: Tensor
+    log_r: Tensor
+    score: Tensor
+
+
+def _label_pass_numpy(
+    y: Tensor,
+    state: DPMixtureState,
+    log_r: Tensor,
+    auxiliary,
+    uniforms: Tensor,
+    log_aux_prior: float,
+    chunk: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Step 1 of :func:`neal8_sweep` on CPU: the per-point work in numpy and Python scalars
+    (a handful of numpy calls a point; torch's per-op overhead was ~15× that).
+
+    Args:
+        y: ``[N, D]`` data (CPU, float64).
+        state: the sweep's starting state (labels ``[N]``, K components).
+        log_r: ``[K]`` log r_c of the starting components (zeros unweighted).
+        auxiliary: ``(start, stop) -> _Auxiliary`` fresh auxiliary draws for those points.
+        uniforms: ``[N]`` the label draws' uniforms.
+        log_aux_prior: log(α/m).
+        chunk: points per auxiliary chunk.
+
+    Returns:
+        ``[N]`` labels in ``[0, k)``, the k slots' ``[k, D]`` means, ``[k, D, D]``
+        covariances and ``[k]`` counts (empty slots included).
+    """
+    n, k = y.shape[0], state.num_components
+    labels = state.labels.tolist()
+    counts = torch.bincount(state.labels, minlength=k).tolist()
+    capacity = max(2 * k, 8)
+    # score[i, c] = log r_c + log N(y_i; μ_c, Σ_c); columns of components opened in this
+    # sweep are filled only for the points still to come.
+    score = np.full((n, capacity), -math.inf)
+    starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
+    score[:, :k] = starting.numpy()
+    log_counts = np.full(capacity, -math.inf)
+    log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    logits = np.empty(0)  # reused buffer for one point's K + m logits
+    u = uniforms.tolist()
+    opened: dict[int, tuple[Tensor, Tensor, Tensor, float]] = {}  # slot -> μ, Σ, L, log r
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        aux = auxiliary(start, stop)
+        aux_score = aux.score.numpy()
+        m = aux_score.shape[1]
+        if logits.shape[0] < capacity + m:
+            logits = np.empty(capacity + m)
+        live = [slot for slot in opened if counts[slot] > 0]
+        if live:  # components opened in earlier chunks: their columns for this chunk
+            mean = torch.stack([opened[slot][0] for slot in live])
+            tril = torch.stack([opened[slot][2] for slot in live])
+            lr = torch.tensor([opened[slot][3] for slot in live], dtype=DTYPE)
+            column = _log_prob_tril(y[start:stop, None, :], mean, tril) + lr
+            score[start:stop, live] = column.numpy()
+        for i in range(start, stop):
+            c = labels[i]
+            counts[c] -= 1
+            singleton = counts[c] == 0
+            log_counts[c] = math.log(counts[c]) if counts[c] else -math.inf
+            row = score[i]
+            np.add(log_counts[:k], row[:k], out=logits[:k])
+            logits[k : k + m] = aux_score[i - start]
+            if singleton:  # Algorithm 8: a singleton's parameters fill the first aux slot
+                logits[k] = log_aux_prior + row[c]
+            choice = draw_categorical_numpy(logits[: k + m], u[i])
+            if choice < k:
+                new = choice
+            elif singleton and choice == k:
+                new = c  # kept its own parameters
+            else:
+                j = choice - k
+                new = c if singleton else _free_slot(counts, k)
+                if new == k:
+                    k += 1
+                    counts.append(0)
+                    if k > capacity:
+                        capacity *= 2
+                        score = _grow(score, capacity)
+                        log_counts = np.concatenate((log_counts, np.full(k - 1, -math.inf)))
+                        logits = np.empty(capacity + m)
+                r = i - start
+                mean, cov, tril = aux.means[r, j], aux.covs[r, j], aux.tril[r, j]
+                lr = float(aux.log_r[r, j])
+                opened[new] = (mean, cov, tril, lr)
+                if i + 1 < stop:
+                    score[i + 1 : stop, new] = (
+                        _log_prob_tril(y[i + 1 : stop], mean, tril) + lr
+                    ).numpy()
+            labels[i] = new
+            counts[new] += 1
+            log_counts[new] = math.log(counts[new])
+    means, covs = _slot_parameters(state, opened, k)
+    counts_t = torch.tensor(counts, dtype=DTYPE)
+    return torch.tensor(labels, dtype=torch.long), means, covs, counts_t
+
+
+def _label_pass_sync_free(
+    y: Tensor,
+    state: DPMixtureState,
+    log_r: Tensor,
+    auxiliary,
+    uniforms: Tensor,
+    log_aux_prior: float,
+    chunk: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Step 1 of :func:`neal8_sweep` with tensor ops only: the host never waits for the
+    device inside a chunk (one sync a chunk, to grow the slot capacity).
+
+    Same arguments, draws and returns as :func:`_label_pass_numpy`. Every branch of the
+    per-point step becomes a masked write: all components live in ``capacity`` slots (empty
+    ones have count 0, hence probability 0), and the likelihood column of the chunk's points
+    under the chosen auxiliary component is computed at every point and written only where a
+    component opens.
+    """
+    n, d = y.shape
+    k = state.num_components
+    device = y.device
+    capacity = k + chunk
+    means = torch.zeros(capacity, d, dtype=DTYPE, device=device)
+    covs = torch.eye(d, dtype=DTYPE, device=device).repeat(capacity, 1, 1)
+    means[:k], covs[:k] = state.means, state.covariances
+    tril = torch.linalg.cholesky(covs)
+    slot_log_r = torch.zeros(capacity, dtype=DTYPE, device=device)
+    slot_log_r[:k] = log_r
+    counts = torch.zeros(capacity, dtype=DTYPE, device=device)
+    counts[:k] = torch.bincount(state.labels, minlength=k).to(DTYPE)
+    labels = state.labels.clone()
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        used = int(counts.nonzero().max()) + 1  # the chunk's one sync
+        if capacity - used < stop - start:  # each point opens at most one slot
+            extra = stop - start
+            means = torch.cat((means, means.new_zeros(extra, d)))
+            covs = torch.cat((covs, torch.eye(d, dtype=DTYPE, device=device).repeat(extra, 1, 1)))
+            tril = torch.cat((tril, torch.eye(d, dtype=DTYPE, device=device).repeat(extra, 1, 1)))
+            slot_log_r = torch.cat((slot_log_r, slot_log_r.new_zeros(extra)))
+            counts = torch.cat((counts, counts.new_zeros(extra)))
+            capacity += extra
+        aux = auxiliary(start, stop)
+        y_chunk = y[start:stop]
+        score = _log_prob_tril(y_chunk[:, None, :], means, tril) + slot_log_r  # [C, capacity]
+        for i in range(start, stop):
+            _sync_free_step(
+                i, i - start, y_chunk, labels, counts, score, means, covs, tril, slot_log_r,
+                aux, uniforms, log_aux_prior,
+            )  # fmt: skip
+    k = int(counts.nonzero().max()) + 1
+    return labels, means[:k], covs[:k], counts[:k]
+
+
+def _sync_free_step(
+    i: int,
+    r: int,
+    y_chunk: Tensor,
+    labels: Tensor,
+    counts: Tensor,
+    score: Tensor,
+    means: Tensor,
+    covs: Tensor,
+    tril: Tensor,
+    slot_log_r: Tensor,
+    aux: _Auxiliary,
+    uniforms: Tensor,
+    log_aux_prior: float,
+) -> None:
+    """Relabel point i (row r of its chunk) in place, branch-free; see
+    :func:`_label_pass_sync_free`. ``labels [N]``, ``counts [S]``, ``score [C, S]`` and the
+    slots' ``means [S, D]``, ``covs``/``tril [S, D, D]``, ``slot_log_r [S]`` are updated."""
+    capacity = counts.shape[0]
+    c = labels[i : i + 1]  # [1]: a view, not a host int
+    counts.index_add_(0, c, counts.new_full((1,), -1.0))
+    singleton = counts.index_select(0, c) == 0
+    row = score[r]
+    own = log_aux_prior + row.index_select(0, c)
+    aux_row = aux.score[r]
+    first = torch.where(singleton, own, aux_row[:1])
+    log_counts = torch.where(counts > 0, counts.log(), -math.inf)
+    logits = torch.cat((log_counts + row, first, aux_row[1:]))
+    choice = draw_categorical(logits[None], uniforms[i : i + 1])  # [1]
+    is_aux = choice >= capacity
+    keep_own = singleton & (choice == capacity)
+    j = (choice - capacity).clamp(0, aux_row.shape[0] - 1)
+    free = (counts == 0).to(torch.uint8).argmax().reshape(1)  # the first empty slot
+    opened = torch.where(singleton, c, free)
+    new = torch.where(is_aux, torch.where(keep_own, c, opened), choice)
+    opens = is_aux & ~keep_own
+    labels[i : i + 1] = new
+    counts.index_add_(0, new, counts.new_ones(1))
+    mean_j = aux.means[r].index_select(0, j)  # [1, D]
+    tril_j = aux.tril[r].index_select(0, j)
+    means.index_copy_(0, new, torch.where(opens[:, None], mean_j, means.index_select(0, new)))
+    wide = opens[:, None, None]
+    cov_j = aux.covs[r].index_select(0, j)
+    covs.index_copy_(0, new, torch.where(wide, cov_j, covs.index_select(0, new)))
+    tril.index_copy_(0, new, torch.where(wide, tril_j, tril.index_select(0, new)))
+    lr_j = aux.log_r[r].index_select(0, j)
+    slot_log_r.index_copy_(0, new, torch.where(opens, lr_j, slot_log_r.index_select(0, new)))
+    column = _log_prob_tril(y_chunk[:, None, :], mean_j, tril_j) + lr_j  # [C, 1]
+    score.index_copy_(1, new, torch.where(opens, column, score.index_select(1, new)))
+
+
+def _slot_parameters(
+    state: DPMixtureState, opened: dict[int, tuple[Tensor, Tensor, Tensor, float]], k: int
 ) -> tuple[Tensor, Tensor]:
-    """Parameters of all k slots: the sweep's starting ones, overwritten in order by the
-    components created during the sweep (a reused slot keeps its latest value)."""
-    all_means = torch.empty(k, means.shape[-1], dtype=DTYPE, device=means.device)
-    all_covs = torch.empty(k, *covs.shape[-2:], dtype=DTYPE, device=covs.device)
-    all_means[: means.shape[0]] = means
-    all_covs[: covs.shape[0]] = covs
-    for slot, mean, cov in updates:
-        all_means[slot] = mean
-        all_covs[slot] = cov
-    return all_means, all_covs
+    """``[k, D]`` means and ``[k, D, D]`` covariances of all k slots: the sweep's starting
+    ones, overwritten by the components opened during the sweep (each slot's latest)."""
+    means = torch.empty(k, state.means.shape[-1], dtype=DTYPE, device=state.means.device)
+    covs = torch.empty(k, *state.covariances.shape[-2:], dtype=DTYPE, device=means.device)
+    start = state.num_components
+    means[:start], covs[:start] = state.means, state.covariances
+    for slot, (mean, cov, _, _) in opened.items():
+        means[slot], covs[slot] = mean, cov
+    return means, covs
+
+
+def _free_slot(counts: list[int], k: int) -> int:
+    """The first empty slot below k, else k."""
+    try:
+        return counts.index(0, 0, k)
+    except ValueError:
+        return k
+
+
+def _grow(score: np.ndarray, capacity: int) -> np.ndarray:
+    grown = np.full((score.shape[0], capacity), -math.inf)
+    grown[:, : score.shape[1]] = score
+    return grown
 
 
 def _mean(y: Tensor) -> Tensor:
@@ -622,16 +868,20 @@ def _covariance_step(
         ``[K, D, D]`` the new Σ + R, and ``[K]`` whether each proposal was accepted.
     """
     reg = prior.regularization
-    # The acceptance uniforms come from the proposal's own seed: the generator's stream, and
-    # with it the rest of the chain, is the same as without the test (identical for R = 0).
+    # The acceptance uniforms are drawn with or without the test, so the rest of the chain
+    # is the same either way (identical for R = 0, where every proposal is accepted).
     proposal, uniforms = prior.sample_inverse_wishart(
         prior.df + counts, prior.scale + scatter, generator, num_uniforms=counts.shape[0]
     )
     uniforms = uniforms.to(covs.device)
     if not exact:
         return proposal + reg, torch.ones_like(counts, dtype=torch.bool)
-    log_ratio = _regularisation_log_weight(proposal, reg, counts, scatter)
-    log_current = _regularisation_log_weight(covs - reg, reg, counts, scatter)
+    k = counts.shape[0]
+    # Proposal and current state in one batched call (half the small-tensor ops).
+    both = _regularisation_log_weight(
+        torch.cat((proposal, covs - reg)), reg, counts.repeat(2), scatter.repeat(2, 1, 1)
+    )
+    log_ratio, log_current = both[:k], both[k:]
     # A current Σ outside the support (Σ + R given from outside, Σ not positive definite) has
     # target density 0: any proposal is accepted.
     accept = (log_current == -math.inf) | (uniforms.log() < log_ratio - log_current)
@@ -664,7 +914,7 @@ def _regularisation_log_weight(
 
 def _mean_conditional(
     prior: NormalInverseWishartPrior, covs: Tensor, counts: Tensor, residuals: Tensor
-) -> MultivariateNormal:
+) -> tuple[Tensor, Tensor]:
     """μ | Σ, y ~ N(P⁻¹ (Σ0⁻¹ μ0 + Σ⁻¹ Σ y), P⁻¹), P = Σ0⁻¹ + n Σ⁻¹, batched over K.
 
     The location is computed as μ0 + P⁻¹ Σ⁻¹ Σ_i (y_i − μ0), the same quantity without the
@@ -674,6 +924,9 @@ def _mean_conditional(
         covs: ``[K, D, D]`` component covariances Σ (regularisation included).
         counts: ``[K]`` points per component.
         residuals: ``[K, D]`` Σ_{i in c} (y_i − μ0) (:func:`_residual_sums` about μ0).
+
+    Returns:
+        ``[K, D]`` the location and ``[K, D, D]`` the Cholesky factor of the precision P.
     """
     prior_precision = torch.cholesky_inverse(torch.linalg.cholesky(prior.mean_covariance))
     precision_k = torch.cholesky_inverse(torch.linalg.cholesky(covs))
@@ -682,4 +935,16 @@ def _mean_conditional(
     rhs = (precision_k @ residuals[:, :, None]).squeeze(-1)
     chol = torch.linalg.cholesky(precision)
     loc = prior.mean_loc + torch.cholesky_solve(rhs[:, :, None], chol).squeeze(-1)
-    return MultivariateNormal(loc, precision_matrix=precision, validate_args=False)
+    return loc, chol
+
+
+def _draw_normal_precision(
+    loc: Tensor, precision_tril: Tensor, generator: torch.Generator | None
+) -> Tensor:
+    """``[..., D]`` draws of N(loc, P⁻¹) with P = L Lᵀ: loc + L⁻ᵀ z, z ~ N(0, I) drawn from
+    ``generator`` (on its device). Cov(L⁻ᵀ z) = L⁻ᵀ L⁻¹ = P⁻¹."""
+    where = generator.device if generator is not None else loc.device
+    z = torch.randn(loc.shape, generator=generator, dtype=loc.dtype, device=where)
+    upper = precision_tril.transpose(-1, -2)
+    step = torch.linalg.solve_triangular(upper, z.to(loc.device).unsqueeze(-1), upper=True)
+    return loc + step.squeeze(-1)

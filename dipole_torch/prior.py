@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-from torch.distributions import MultivariateNormal, Wishart
+from torch.distributions import MultivariateNormal
 
-from dipole_torch.sampling import draw, draw_with_uniforms
+from dipole_torch.sampling import inverse_wishart, wishart
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
+
+DTYPE = torch.float64
 
 
 @dataclass
@@ -31,9 +32,9 @@ class NormalInverseWishartPrior:
             covariance (drawn or estimated) to keep the mixture non-degenerate; the paper
             derives it from the initial exploration noise.
 
-    Conventions: Σ ~ IW(ν, Ψ) is drawn as Σ = W⁻¹ with
-    ``W ~ torch.distributions.Wishart(df=ν, precision_matrix=Ψ)`` (i.e. W has scale Ψ⁻¹);
-    tests check E[Σ] = Ψ / (ν − D − 1).
+    Conventions: Σ ~ IW(ν, Ψ) has Σ⁻¹ ~ Wishart(ν, Ψ⁻¹) and E[Σ] = Ψ / (ν − D − 1); it is
+    drawn directly by Bartlett's decomposition (:func:`dipole_torch.sampling.inverse_wishart`);
+    tests/test_sampling.py checks the moments against ``torch.distributions.Wishart``'s.
     """
 
     mean_loc: Tensor
@@ -95,11 +96,6 @@ class NormalInverseWishartPrior:
     def mean_distribution(self) -> MultivariateNormal:
         return MultivariateNormal(self.mean_loc, covariance_matrix=self.mean_covariance)
 
-    def precision_distribution(self, df: Tensor | float, scale: Tensor) -> Wishart:
-        """W ~ Wishart with W⁻¹ ~ IW(df, scale); ``scale: [..., D, D]``."""
-        df = torch.as_tensor(df, dtype=scale.dtype, device=scale.device)
-        return Wishart(df=df, precision_matrix=scale, validate_args=False)
-
     def sample_inverse_wishart(
         self,
         df: Tensor | float,
@@ -109,29 +105,37 @@ class NormalInverseWishartPrior:
     ) -> Tensor | tuple[Tensor, Tensor]:
         """``[..., D, D]`` draws of IW(df, scale) (batched over ``scale``'s leading dims).
 
-        With ``num_uniforms > 0``, also ``[num_uniforms]`` U(0, 1) draws from the same seed of
-        ``generator`` (:func:`dipole_torch.sampling.draw_with_uniforms`), returned as a pair.
+        A direct Bartlett draw (:func:`dipole_torch.sampling.inverse_wishart`) from
+        ``generator``. With ``num_uniforms > 0``, ``[num_uniforms]`` float64 U(0, 1) draws
+        made next from the same generator are returned too, as a pair (the Metropolis-Hastings
+        acceptance uniforms of the Σ step).
+
+        Args:
+            df: scalar or ``[...]`` degrees of freedom.
+            scale: ``[..., D, D]`` symmetric positive-definite scales.
         """
-        with warnings.catch_warnings():
-            # torch's Wishart.rsample tests its draws with an inverted flag, warns "Singular
-            # sample detected" for valid ones and redraws them once: still exact, just noisy.
-            warnings.filterwarnings("ignore", "Singular sample detected")
-            precision, uniforms = draw_with_uniforms(
-                self.precision_distribution(df, scale), num_uniforms, (), generator
-            )
-        covariance = torch.cholesky_inverse(torch.linalg.cholesky(precision))
-        covariance = 0.5 * (covariance + covariance.transpose(-1, -2))
-        return (covariance, uniforms) if num_uniforms > 0 else covariance
+        covariance = inverse_wishart(df, torch.linalg.cholesky(scale), generator)
+        if num_uniforms == 0:
+            return covariance
+        where = generator.device if generator is not None else scale.device
+        uniforms = torch.rand(num_uniforms, generator=generator, dtype=DTYPE, device=where)
+        return covariance, uniforms.to(scale.device)
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-        """Draw n component parameters from H.
+        """Draw n component parameters from H (means first, then covariances).
+
+        Ψ0 and Σ0 are factorised once for all n draws.
 
         Returns:
             means ``[n, D]``, covariances ``[n, D, D]`` (regularised).
         """
-        means = draw(self.mean_distribution(), (n,), generator)
-        scale = self.scale.expand(n, self.dim, self.dim)
-        covariances = self.sample_inverse_wishart(self.df, scale, generator)
+        d = self.dim
+        where = generator.device if generator is not None else self.mean_loc.device
+        z = torch.randn(n, d, generator=generator, dtype=self.mean_loc.dtype, device=where)
+        mean_tril = torch.linalg.cholesky(self.mean_covariance)
+        means = self.mean_loc + z.to(self.mean_loc.device) @ mean_tril.T
+        scale_tril = torch.linalg.cholesky(self.scale).expand(n, d, d)
+        covariances = inverse_wishart(self.df, scale_tril, generator)
         return means, covariances + self.regularization
 
     def updated(
@@ -173,9 +177,10 @@ class NormalInverseWishartPrior:
         rhs = spread_precision @ (means - initial.mean_loc).sum(0)
         chol = torch.linalg.cholesky(precision)
         loc = initial.mean_loc + torch.cholesky_solve(rhs[:, None], chol).squeeze(-1)
-        mean_loc = draw(
-            MultivariateNormal(loc, precision_matrix=_symmetric(precision)), (), generator
-        )
+        # μ0 = loc + L⁻ᵀ z has covariance (L Lᵀ)⁻¹ = P⁻¹; z from the generator directly.
+        where = generator.device if generator is not None else loc.device
+        z = torch.randn(d, 1, generator=generator, dtype=loc.dtype, device=where).to(loc.device)
+        mean_loc = loc + torch.linalg.solve_triangular(chol.T, z, upper=True).squeeze(-1)
         # Σ0 | μ0, {μ_k}
         centred = means - mean_loc
         scale_s = 2.0 * initial.mean_covariance + centred.T @ centred
@@ -183,21 +188,19 @@ class NormalInverseWishartPrior:
         # Ψ0 | {Σ_k}
         hyper_df = d + 1.0
         posterior_precision = hyper_df * _inverse(initial.scale) + _inverse(covariances).sum(0)
-        wishart = Wishart(
-            df=torch.as_tensor(hyper_df + k * self.df, dtype=means.dtype, device=means.device),
-            precision_matrix=_symmetric(posterior_precision),
-            validate_args=False,
-        )
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", "Singular sample detected")
-            scale = draw(wishart, (), generator)
-        return NormalInverseWishartPrior(
+        posterior_scale_tril = torch.linalg.cholesky(_inverse(_symmetric(posterior_precision)))
+        scale = wishart(hyper_df + k * self.df, posterior_scale_tril, generator)
+        # Built from draws that are positive definite by construction: the validation of
+        # __post_init__ (a few Cholesky factorisations) would run once per sweep for nothing.
+        prior = object.__new__(NormalInverseWishartPrior)
+        prior.__dict__.update(
             mean_loc=mean_loc,
             mean_covariance=mean_covariance,
             df=self.df,
-            scale=_symmetric(scale),
+            scale=scale,
             regularization=self.regularization,
         )
+        return prior
 
     def state_dict(self) -> dict[str, Tensor | float]:
         return {
