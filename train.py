@@ -13,12 +13,24 @@ Outputs (Hydra's run directory, ``outputs/<task>/<algo>/seed<seed>_<time>/``):
   ``GaussianMixture`` state dicts: see the README's "Use the policies in your code".
 * ``checkpoint.pt`` -- resume with ``resume=<path>``; the resumed run makes exactly the
   draws the uninterrupted one would have made.
+
+Reliability (README's "Reliability"): every output file is written under a temporary name
+and moved into place (``dipole_torch.checkpoint``), so ``kill -9`` at any moment leaves the
+previous complete file; SIGTERM and SIGINT finish the current iteration, write a checkpoint,
+print the command that resumes and exit with status 128 + the signal number (143, 130);
+``resume=`` loads with ``torch.load(weights_only=True)``, refuses a checkpoint whose task,
+dimension, reward range or algorithm settings differ from the config (naming the keys), and
+continues in the checkpoint's directory with the checkpoint's seed.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
+import shlex
+import signal
+import sys
 import time
 from pathlib import Path
 
@@ -31,31 +43,180 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from dipole_torch import Dipole
+from dipole_torch.checkpoint import (
+    CheckpointError,
+    atomic_save,
+    atomic_write_text,
+    config_differences,
+    load_checkpoint,
+    remove_stale_temporaries,
+)
+
+CHECKPOINT_KEYS = ("optimizer", "task_generator", "history", "config")
+OUTPUTS = ("checkpoint.pt", "results.json", "policies.pt")  # each written atomically
+# Config keys a resumed run may change: the budget, where and how fast it runs, what it
+# prints. Everything else (task, its dimension and reward range, algorithm and settings)
+# must match the checkpoint. The seed follows the checkpoint (see load_resume).
+RESUME_MAY_CHANGE = (
+    "trials",
+    "task.trials",
+    "device",
+    "task.env.device",
+    "threads",
+    "checkpoint_every",
+    "figure_every",
+    "resume",
+    "progress",
+    "seed",
+)
+
+# On resume, Hydra's run directory is the checkpoint's (unless hydra.run.dir is given) and
+# Hydra's own record goes to .hydra/resume_<time>, keeping the original run's .hydra/.
+OmegaConf.register_new_resolver(
+    "checkpoint_dir",
+    lambda resume, fresh: fresh if not resume else str(_run_dir_of(Path(resume))),
+    replace=True,
+)
+OmegaConf.register_new_resolver(
+    "if_resumed", lambda resume, resumed, fresh: resumed if resume else fresh, replace=True
+)
+
+
+def _run_dir_of(resume: Path) -> Path:
+    return resume if resume.is_dir() else resume.parent  # a directory is refused later
+
+
+def _positive_int(value, minimum: int = 1) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= minimum
 
 
 def check_config(cfg: DictConfig) -> None:
     """Reject bad values with a message naming the key (Hydra itself rejects unknown
     task/algo names, listing the available ones)."""
-    if not isinstance(cfg.trials, int) or cfg.trials <= 0:
+    if not _positive_int(cfg.trials):
         raise ValueError(
             f"trials (the trial budget) must be a positive integer, got {cfg.trials!r}"
         )
-    if not isinstance(cfg.seed, int):
-        raise ValueError(f"seed must be an integer, got {cfg.seed!r}")
-    if not isinstance(cfg.task.n0, int) or cfg.task.n0 <= 0:
+    if not _positive_int(cfg.seed, minimum=0):
+        raise ValueError(f"seed must be a non-negative integer, got {cfg.seed!r}")
+    if not _positive_int(cfg.task.n0):
         raise ValueError(
             f"task.n0 (initial samples) must be a positive integer, got {cfg.task.n0!r}"
         )
     for key in ("threads", "checkpoint_every"):
-        if not isinstance(cfg[key], int) or cfg[key] < 1:
+        if not _positive_int(cfg[key]):
             raise ValueError(f"{key} must be a positive integer, got {cfg[key]!r}")
-    if not isinstance(cfg.figure_every, int) or cfg.figure_every < 0:
+    if not _positive_int(cfg.figure_every, minimum=0):
         raise ValueError(f"figure_every must be a non-negative integer, got {cfg.figure_every!r}")
     device = str(cfg.device)
-    if not (device == "cpu" or device.startswith("cuda")):
-        raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {device!r}")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device={device!r} but CUDA is not available on this machine")
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", device):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device={device!r} but CUDA is not available on this machine")
+        index = int(device.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            raise ValueError(
+                f"device={device!r} but this machine has {torch.cuda.device_count()} CUDA device(s)"
+            )
+    if cfg.resume is not None and (not isinstance(cfg.resume, str) or not cfg.resume):
+        raise ValueError(f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}")
+
+
+def load_resume(cfg: DictConfig) -> dict:
+    """Load ``cfg.resume`` safely and check it against ``cfg``; adopt its seed.
+
+    Raises ``CheckpointError`` (a ``ValueError``) naming the file for a missing, truncated
+    or unsafe file or another kind of file (e.g. ``policies.pt``), and naming the keys
+    whose values differ from the checkpoint's config.
+    """
+    checkpoint = load_checkpoint(
+        cfg.resume,
+        required=CHECKPOINT_KEYS,
+        kind="train.py checkpoint",
+        hint="Resume from the checkpoint.pt of a run (policies.pt holds only its result).",
+    )
+    saved = checkpoint["config"]
+    saved = OmegaConf.to_container(OmegaConf.create(saved)) if isinstance(saved, str) else saved
+    current = OmegaConf.to_container(cfg, resolve=True)
+    differences = config_differences(saved, current, ignore=RESUME_MAY_CHANGE)
+    if differences:
+        # The group choices (task.name, algo.name) first, then the settings.
+        differences.sort(key=lambda d: (not d[0].endswith(".name"), d[0]))
+        shown = [f"{key} ({a!r} in the checkpoint, {b!r} now)" for key, a, b in differences[:8]]
+        if len(differences) > 8:
+            shown.append(
+                f"and {len(differences) - 8} more: " + ", ".join(k for k, *_ in differences[8:])
+            )
+        command = checkpoint.get("overrides")
+        raise CheckpointError(
+            f"cannot resume {cfg.resume!r}: the config differs from the checkpoint's in "
+            f"{len(differences)} key(s) that must match: {'; '.join(shown)}. "
+            + (
+                f"The checkpoint's run resumes with: {resume_command(command, cfg.resume)}"
+                if command is not None
+                else "Give the run's own settings."
+            )
+        )
+    seed = saved.get("seed", cfg.seed)
+    if seed != cfg.seed:
+        overridden = any(o.split("=", 1)[0].lstrip("+~") == "seed" for o in _overrides())
+        if overridden:
+            raise CheckpointError(
+                f"cannot resume {cfg.resume!r} with seed={cfg.seed}: the checkpoint's run has "
+                f"seed={seed}, and a resumed run keeps its seed (drop seed=)"
+            )
+        cfg.seed = seed
+    return checkpoint
+
+
+def _overrides() -> list[str]:
+    return list(HydraConfig.get().overrides.task)
+
+
+def resume_command(overrides: list[str], checkpoint: str | Path) -> str:
+    """The shell command that resumes this run from ``checkpoint``."""
+    keep = [
+        o
+        for o in overrides
+        if o.split("=", 1)[0].lstrip("+~") not in ("resume", "hydra.run.dir", "hydra.output_subdir")
+    ]
+    return shlex.join(["python", sys.argv[0] or "train.py", *keep, f"resume={checkpoint}"])
+
+
+class StopRequest:
+    """SIGTERM / SIGINT handler: ask the loop to checkpoint and stop after this iteration.
+
+    A second signal stops at once (``KeyboardInterrupt``); the files on disk are then the
+    last complete ones, since every write is atomic.
+    """
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def __call__(self, signum: int, frame) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt(f"second {signal.Signals(signum).name}")
+        self.signum = signum
+        print(
+            f"\n{signal.Signals(signum).name} received: finishing this iteration, then writing "
+            "a checkpoint (send it again to stop at once)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def __enter__(self) -> StopRequest:
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            try:
+                self._previous[signum] = signal.signal(signum, self)
+            except ValueError:  # not the main thread (e.g. a threaded Hydra launcher)
+                pass
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
 
 
 def log_iteration(writer: SummaryWriter, optimizer, iteration: int) -> dict[str, float]:
@@ -98,61 +259,109 @@ def policy_summary(task, optimizer) -> list[dict]:
     ]
 
 
-@hydra.main(version_base=None, config_path="configs", config_name="config")
+# An absolute config path: main() also runs when train.py is imported (tests, drivers).
+@hydra.main(
+    version_base=None, config_path=str(Path(__file__).parent / "configs"), config_name="config"
+)
 def main(cfg: DictConfig) -> dict:
     check_config(cfg)
     torch.set_num_threads(cfg.threads)
     out = Path(HydraConfig.get().runtime.output_dir)
+    checkpoint = load_resume(cfg) if cfg.resume else None  # may adopt the checkpoint's seed
+    if checkpoint is None and (out / "checkpoint.pt").exists():
+        raise CheckpointError(
+            f"{out} already holds a run's checkpoint.pt; continue it with "
+            f"resume={out / 'checkpoint.pt'}, or choose another hydra.run.dir"
+        )
+    remove_stale_temporaries(out, OUTPUTS)  # left by a session killed mid-write
     task = instantiate(cfg.task.env)
     generator = torch.Generator().manual_seed(cfg.seed)  # the optimizer's draws
     # Episodes' random starts: a CPU generator (the tasks draw on the CPU, then move).
     task_generator = torch.Generator().manual_seed(cfg.seed + 1_000_003)
+    reward_range = tuple(task.reward_range) if cfg.algo.use_task_reward_range else None
     optimizer = instantiate(
         cfg.algo.optimizer,
         theta0=task.theta0.double(),
         sigma_start=task.sigma_start.double(),
         n0=cfg.task.n0,
-        reward_range=tuple(task.reward_range) if cfg.algo.use_task_reward_range else None,
+        reward_range=reward_range,
         generator=generator,
     )
+    shape = {"dimension": optimizer.dim, "reward_range": reward_range}
     history: list[dict] = []
-    if cfg.resume:
-        checkpoint = torch.load(cfg.resume, weights_only=False)
-        optimizer.load_state_dict(checkpoint["optimizer"])
-        task_generator.set_state(checkpoint["task_generator"])
+    elapsed = 0.0  # wall time of the run's earlier sessions
+    if checkpoint is not None:
+        saved = {key: checkpoint.get(key, shape[key]) for key in shape}
+        saved["reward_range"] = saved["reward_range"] and tuple(saved["reward_range"])
+        if saved != shape:
+            raise CheckpointError(
+                f"cannot resume {cfg.resume!r}: the checkpoint's task has {saved}, "
+                f"this config's has {shape}"
+            )
+        try:
+            optimizer.load_state_dict(checkpoint["optimizer"])
+            task_generator.set_state(checkpoint["task_generator"])
+        except (KeyError, ValueError, TypeError, RuntimeError) as error:
+            raise CheckpointError(
+                f"{cfg.resume!r} does not fit this optimizer ({type(error).__name__}: {error})"
+            ) from None
         history = checkpoint["history"]
-    writer = SummaryWriter(str(out / "tensorboard"))
+        elapsed = float(checkpoint.get("wall_time_s", 0.0))
+        print(f"resumed {cfg.resume} at {optimizer.trials} trials (seed {cfg.seed})")
+    # purge_step hides events that a killed session logged after its last checkpoint.
+    writer = SummaryWriter(
+        str(out / "tensorboard"), purge_step=optimizer.trials + 1 if checkpoint else None
+    )
     writer.add_text("config", f"```\n{OmegaConf.to_yaml(cfg)}\n```")
+    checkpoint_path = out / "checkpoint.pt"
+    start = time.perf_counter()
+
+    # Weights-only loadable: tensors, dicts, lists, strings and numbers (the config as YAML).
+    config_yaml, overrides = OmegaConf.to_yaml(cfg, resolve=True), _overrides()
 
     def save_checkpoint() -> None:
-        torch.save(
+        # Written under a temporary name and moved into place: never a partial file.
+        atomic_save(
             {
                 "optimizer": optimizer.state_dict(),
                 "task_generator": task_generator.get_state(),
                 "history": history,
-                "config": OmegaConf.to_container(cfg, resolve=True),
+                "config": config_yaml,
+                "overrides": overrides,
+                "wall_time_s": elapsed + time.perf_counter() - start,
+                **shape,
             },
-            out / "checkpoint.pt",
+            checkpoint_path,
         )
 
-    start = time.perf_counter()
     bar = tqdm(total=cfg.trials, initial=optimizer.trials, unit="trial", disable=not cfg.progress)
-    while optimizer.trials < cfg.trials:
-        theta = optimizer.ask()
-        rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
-        optimizer.tell(theta, rewards)
-        row = log_iteration(writer, optimizer, len(history))
-        history.append(row)
-        bar.update(theta.shape[0])
-        bar.set_postfix(best=f"{row['best_so_far']:.3g}", policies=row["num_policies"])
-        if cfg.figure_every and len(history) % cfg.figure_every == 0:
-            figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
-            if figure is not None:
-                writer.add_figure("policies/figure", figure, optimizer.trials)
-        if len(history) % cfg.checkpoint_every == 0:
-            save_checkpoint()
-    bar.close()
-    save_checkpoint()
+    with StopRequest() as stop:
+        while optimizer.trials < cfg.trials and stop.signum is None:
+            theta = optimizer.ask()
+            rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
+            optimizer.tell(theta, rewards)
+            row = log_iteration(writer, optimizer, len(history))
+            history.append(row)
+            bar.update(theta.shape[0])
+            bar.set_postfix(best=f"{row['best_so_far']:.3g}", policies=row["num_policies"])
+            if cfg.figure_every and len(history) % cfg.figure_every == 0:
+                figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
+                if figure is not None:
+                    writer.add_figure("policies/figure", figure, optimizer.trials)
+            if len(history) % cfg.checkpoint_every == 0:
+                save_checkpoint()
+        bar.close()
+        save_checkpoint()
+        if stop.signum is not None:
+            writer.close()
+            name = signal.Signals(stop.signum).name
+            print(
+                f"\nstopped by {name} at {optimizer.trials} of {cfg.trials} trials; "
+                f"checkpoint written to {checkpoint_path}\nresume with:\n  "
+                f"{resume_command(overrides, checkpoint_path)}",
+                flush=True,
+            )
+            raise SystemExit(128 + stop.signum)
 
     figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
     if figure is not None:
@@ -162,20 +371,20 @@ def main(cfg: DictConfig) -> dict:
     artefacts = {"policies": optimizer.policies.state_dict()}
     if isinstance(optimizer, Dipole):
         artefacts["mixture"] = optimizer.mixture.state_dict()
-    torch.save(artefacts, out / "policies.pt")
+    atomic_save(artefacts, out / "policies.pt")
     best_theta, best_reward = optimizer.best()
     results = {
         "task": cfg.task.name,
         "algo": cfg.algo.name,
         "seed": cfg.seed,
         "trials": optimizer.trials,
-        "wall_time_s": time.perf_counter() - start,
+        "wall_time_s": elapsed + time.perf_counter() - start,
         "best_reward": best_reward,
         "best_theta": best_theta.tolist(),
         "policies": policies,
         "history": {key: [row[key] for row in history] for key in history[0]} if history else {},
     }
-    (out / "results.json").write_text(json.dumps(results, indent=1, allow_nan=False))
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1, allow_nan=False))
     print(
         f"\n{cfg.algo.name} on {cfg.task.name}: best return {best_reward:.4g} in "
         f"{optimizer.trials} trials; {len(policies)} policies (return of each mean):"

@@ -32,7 +32,15 @@ from dipole_torch.power import importance_sets, power_update
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.reward import RewardScale, check_rewards
 from dipole_torch.sampling import draw
-from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
+from dipole_torch.validation import (
+    check_count,
+    check_finite,
+    check_generator,
+    check_matrix_shape,
+    check_positive_definite,
+    check_real,
+    check_real_tensor,
+)
 
 RewardRange = tuple[float, float] | str | None
 PROBE = -2  # owner of a hill-valley probe row (a scout is −1)
@@ -89,6 +97,12 @@ class PolicySearch:
         reward_floor: float = 1e-3,
         generator: torch.Generator | None = None,
     ):
+        check_real_tensor(theta0, "theta0")
+        check_real_tensor(sigma_start, "sigma_start")
+        check_count(M, "M (importance-set size)")
+        check_count(n0, "n0 (initial samples)", optional=True)
+        check_real(reward_floor, "reward_floor")
+        check_generator(generator)
         for name, value in (("theta0", theta0), ("sigma_start", sigma_start)):
             if not isinstance(value, Tensor) or not value.is_floating_point():
                 raise TypeError(
@@ -423,6 +437,8 @@ class Power(PolicySearch):
         min_exploration: float = 1e-2,
         generator: torch.Generator | None = None,
     ):
+        check_real(exploration_decay, "exploration_decay")
+        check_real(min_exploration, "min_exploration")
         super().__init__(theta0, sigma_start, M, n0, reward_range, reward_floor, generator)
         if not 0.0 < exploration_decay <= 1.0:
             raise ValueError(f"exploration_decay must lie in (0, 1], got {exploration_decay}")
@@ -571,6 +587,13 @@ class Dipole(PolicySearch):
         hill_valley: bool = True,
         generator: torch.Generator | None = None,
     ):
+        check_real(alpha, "alpha (DP concentration)")
+        check_count(m, "m (auxiliary components)")
+        check_count(cluster_every, "cluster_every", optional=True)
+        check_count(sweeps, "sweeps")
+        check_count(initial_sweeps, "initial_sweeps")
+        check_count(max_policies, "max_policies", optional=True)
+        check_real(prior_df, "prior_df", optional=True)
         super().__init__(
             theta0,
             sigma_start,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -34,8 +36,52 @@ def check_matrix_shape(tensor: Tensor, shape: tuple[int, ...], name: str) -> Non
 
 
 def check_finite(tensor: Tensor, name: str) -> None:
-    """Raise ``ValueError`` if ``tensor`` holds NaN or inf, naming the first bad index."""
+    """Raise ``ValueError`` if ``tensor`` holds NaN or inf, naming the first bad index, or is
+    complex (casting to a real dtype would silently drop the imaginary part)."""
+    if tensor.is_complex():
+        raise ValueError(f"{name} must be real numbers, got dtype {tensor.dtype}")
     bad = ~torch.isfinite(tensor)
     if bad.any():
         first = tuple(int(i) for i in bad.nonzero()[0])
         raise ValueError(f"{name} contains non-finite values (first at index {first})")
+
+
+def check_real_tensor(tensor: Tensor, name: str) -> None:
+    """Raise ``TypeError`` unless ``tensor`` is a floating-point ``torch.Tensor``.
+
+    Integer and bool tensors are refused, not converted: an integer θ0 would make every
+    asked θ an integer (truncated) and a bool one all ``True``, and a silent conversion
+    hides a mistake in the caller. Pass ``theta0.double()`` (or ``.float()``) instead.
+    """
+    if not isinstance(tensor, Tensor) or not tensor.is_floating_point():
+        raise TypeError(
+            f"{name} must be a floating-point torch.Tensor (integer and bool tensors are "
+            f"refused, not converted), got {getattr(tensor, 'dtype', type(tensor).__name__)}"
+        )
+
+
+def check_count(value, name: str, minimum: int = 1, optional: bool = False) -> None:
+    """Raise ``ValueError`` unless ``value`` is a whole number ``>= minimum`` (``None`` too
+    when ``optional``); bools, strings, NaN and inf are refused."""
+    if optional and value is None:
+        return
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and int(value) == value and value >= minimum):
+        kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+        raise ValueError(f"{name} must be {kind}{' or None' if optional else ''}, got {value!r}")
+
+
+def check_real(value, name: str, optional: bool = False) -> None:
+    """Raise ``ValueError`` unless ``value`` is a real number (not a bool or a string);
+    range checks are the caller's."""
+    if optional and value is None:
+        return
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+
+
+def check_generator(generator, name: str = "generator") -> None:
+    """Raise ``TypeError`` unless ``generator`` is ``None`` or a ``torch.Generator`` (on any
+    device: the library draws its seeds on the generator's own device)."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"{name} must be a torch.Generator or None, got {type(generator).__name__}")

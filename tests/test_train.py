@@ -109,7 +109,7 @@ def compose_config(*overrides):
     [
         ("trials=-5", "trials (the trial budget) must be a positive integer"),
         ("trials=0", "trials (the trial budget) must be a positive integer"),
-        ("device=tpu", "device must be 'cpu' or 'cuda"),
+        ("device=tpu", "device must be 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
         ("threads=0", "threads must be a positive integer"),
         ("task.n0=0", "task.n0 (initial samples) must be a positive integer"),
     ],
