@@ -15,12 +15,21 @@ and the tip follows the critically damped spring-damper
 from rest at the start point. The policy parameters θ are the stacked attractor centres μ_i^x
 (``[B, K·dim]``, component-major: ``θ[:, i·dim:(i+1)·dim] = μ_i^x``).
 
+Optionally (``goal_time``) the mixture has one more, **fixed** component centred at the goal
+point ``g`` at time ``goal_time`` (not part of θ): x̂(t) = Σ_i h_i(t) μ_i^x + h_g(t) g, so the
+path ends at the goal whatever θ is, once the goal component dominates (the spring then pulls
+the tip there and it settles at rest, like the final attractor of Calinon et al.'s DS-GMR).
+
 Choices:
 
-* The time centres μ_i^t are fixed and evenly spaced, ``μ_i^t = i · duration / K``
-  (``i = 0..K−1``): the first attractor is active at the start, the last one for the final
-  ``duration / K`` seconds, so a policy whose first and last attractors sit on the start and
-  target points starts and ends there at rest. Time std ``σ_t`` defaults to half the spacing.
+* The time centres μ_i^t are fixed and evenly spaced. Without a goal component,
+  ``μ_i^t = i · duration / K`` (``i = 0..K−1``): the first attractor is active at the start,
+  the last one for the final ``duration / K`` seconds, so a policy whose first and last
+  attractors sit on the start and target points starts and ends there at rest. With one,
+  the K learned components and the goal are evenly spaced on ``[0, goal_time]``:
+  ``μ_i^t = i · goal_time / K``, the goal at ``goal_time``; the motion may last longer than
+  ``goal_time`` to let the tip settle on the goal. Time std ``σ_t`` defaults to half the
+  spacing.
 * The component covariances are fixed and block-diagonal (no t–x coupling), so the GMR
   regression term Σ_xt Σ_tt⁻¹ (t − μ_i^t) vanishes and x̂(t) is the h-weighted average of the
   centres; the spatial block only matters for the (unused) conditional covariance.
@@ -52,6 +61,8 @@ class DSGMR:
         dim: dimension of the task space (3 for a Cartesian position).
         time_std: σ_t of every component's time marginal, seconds (default: half the spacing
             of the time centres).
+        goal_time: time centre (s, in ``(0, duration]``) of a fixed final component at the
+            goal point passed to :meth:`rollout`; ``None`` (default): no fixed component.
         device, dtype: of the time grid and of the generated trajectories.
     """
 
@@ -63,6 +74,7 @@ class DSGMR:
         stiffness: float,
         dim: int = 3,
         time_std: float | None = None,
+        goal_time: float | None = None,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
     ):
@@ -84,17 +96,22 @@ class DSGMR:
         self.damping = 2.0 * math.sqrt(stiffness)  # K_V, 1/s (critical damping)
         self.device = torch.device(device)
         self.dtype = dtype
-        spacing = duration / num_attractors
+        if goal_time is not None and not (0 < goal_time <= duration):
+            raise ValueError(f"goal_time must lie in (0, duration={duration}], got {goal_time}")
+        self.goal_time = None if goal_time is None else float(goal_time)
+        spacing = (duration if goal_time is None else goal_time) / num_attractors
         self.time_std = float(time_std) if time_std is not None else 0.5 * spacing
         factory = {"device": self.device, "dtype": dtype}
         self.times = torch.arange(steps + 1, **factory) * self.dt  # [T+1] seconds
-        self.time_centres = torch.arange(num_attractors, **factory) * spacing  # [K] μ_i^t
+        # [C] μ_i^t of the C = K (+1 with a goal) components, the goal's last.
+        components = num_attractors + (goal_time is not None)
+        self.time_centres = torch.arange(components, **factory) * spacing
         # Block-diagonal component covariances over [t, x]: σ_t² in time, identity in space.
         covariance = torch.eye(1 + dim, **factory)
         covariance[0, 0] = self.time_std**2
-        self._covariances = covariance.expand(num_attractors, 1 + dim, 1 + dim)
-        self._weights = torch.full((num_attractors,), 1.0 / num_attractors, **factory)
-        self._activations: Tensor | None = None  # h_i(t) [T+1, K], computed on first use
+        self._covariances = covariance.expand(components, 1 + dim, 1 + dim)
+        self._weights = torch.full((components,), 1.0 / components, **factory)
+        self._activations: Tensor | None = None  # h_i(t) [T+1, C], computed on first use
 
     @property
     def parameter_dim(self) -> int:
@@ -109,9 +126,24 @@ class DSGMR:
             )
         return theta.reshape(theta.shape[0], self.num_attractors, self.dim)
 
-    def gmm(self, theta: Tensor) -> GaussianMixture:
-        """The GMM over ``[t, x]`` of policies ``theta: [B, K·dim]`` (batch shape ``[B]``)."""
+    def _all_centres(self, theta: Tensor, goal: Tensor | None) -> Tensor:
+        """``[B, C, dim]``: the learned centres, then the goal's (with a goal component)."""
         centres = self._centres(theta)
+        if self.goal_time is None:
+            if goal is not None:
+                raise ValueError("goal given, but this DSGMR has no goal component (goal_time)")
+            return centres
+        if goal is None or goal.shape != (self.dim,):
+            shape = None if goal is None else list(goal.shape)
+            raise ValueError(f"goal must be a [{self.dim}] point (goal_time is set), got {shape}")
+        goal = goal.to(theta).expand(theta.shape[0], 1, self.dim)
+        return torch.cat([centres, goal], dim=1)
+
+    def gmm(self, theta: Tensor, goal: Tensor | None = None) -> GaussianMixture:
+        """The GMM over ``[t, x]`` of policies ``theta: [B, K·dim]`` (batch shape ``[B]``;
+        with a goal component, ``goal: [dim]`` is its fixed centre and is the last
+        component)."""
+        centres = self._all_centres(theta, goal)
         time_column = self.time_centres.to(theta.dtype).expand(theta.shape[0], -1).unsqueeze(-1)
         means = torch.cat([time_column, centres], dim=-1)  # [B, K, 1+dim]
         return GaussianMixture(
@@ -121,24 +153,27 @@ class DSGMR:
             validate_args=False,
         )
 
-    def attractor_path(self, theta: Tensor) -> Tensor:
-        """GMR attractor x̂(t) ``[B, T+1, dim]`` on the time grid :attr:`times`.
+    def attractor_path(self, theta: Tensor, goal: Tensor | None = None) -> Tensor:
+        """GMR attractor x̂(t) ``[B, T+1, dim]`` on the time grid :attr:`times` (``goal:
+        [dim]`` required with a goal component, else ``None``).
 
         Without t–x coupling, GMR's mean is ``Σ_i h_i(t) μ_i^x`` with the responsibilities
         ``h_i(t)`` of the time marginal, which do not depend on θ: they are computed once
         (:meth:`GaussianMixture.responsibilities`) and the path is one matrix product.
         """
-        centres = self._centres(theta)
+        centres = self._all_centres(theta, goal)
         if self._activations is None or self._activations.dtype != theta.dtype:
-            time_marginal = self.gmm(torch.zeros_like(theta[:1])).marginal([0])
+            probe_goal = None if self.goal_time is None else theta.new_zeros(self.dim)
+            time_marginal = self.gmm(torch.zeros_like(theta[:1]), probe_goal).marginal([0])
             self._activations = time_marginal.responsibilities(
                 self.times.to(theta.dtype).unsqueeze(-1).unsqueeze(-1)
-            )[:, 0]  # [T+1, K]
+            )[:, 0]  # [T+1, C]
         return self._activations @ centres
 
-    def rollout(self, theta: Tensor, start: Tensor) -> Tensor:
-        """Tip positions ``[B, T+1, dim]`` of the spring-damper, from rest at ``start: [dim]``."""
-        attractor = self.attractor_path(theta)
+    def rollout(self, theta: Tensor, start: Tensor, goal: Tensor | None = None) -> Tensor:
+        """Tip positions ``[B, T+1, dim]`` of the spring-damper, from rest at ``start: [dim]``
+        (``goal: [dim]``: the fixed final component's centre, with ``goal_time`` only)."""
+        attractor = self.attractor_path(theta, goal)
         position = start.to(theta).expand(theta.shape[0], self.dim)
         velocity = torch.zeros_like(position)
         path = [position]

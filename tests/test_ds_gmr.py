@@ -56,6 +56,36 @@ def test_rollout_gradient_matches_finite_differences():
     )
 
 
+def test_fixed_goal_component_ends_every_path_at_the_goal():
+    """goal_time: a fourth, fixed component at the goal (not in θ) after the K learned ones;
+    whatever θ, the tip ends at the goal, at rest, once the goal component dominates."""
+    ds = DSGMR(3, duration=2.8, dt=0.02, stiffness=100.0, time_std=0.28, goal_time=2.4, dtype=F64)
+    assert ds.parameter_dim == 9
+    torch.testing.assert_close(ds.time_centres, torch.tensor([0.0, 0.8, 1.6, 2.4], dtype=F64))
+    start, goal = torch.zeros(3, dtype=F64), torch.tensor([0.1, 0.2, -0.3], dtype=F64)
+    noise = 0.1 * torch.randn(5, 9, dtype=F64, generator=torch.Generator().manual_seed(2))
+    theta = goal.repeat(3) + noise  # last attractors ~17 cm from the goal
+    attractor = ds.attractor_path(theta, goal)
+    log_h = -0.5 * ((ds.times[:, None] - ds.time_centres) / 0.28) ** 2
+    h = torch.softmax(log_h, dim=-1)  # [T+1, 4]
+    expected = torch.einsum("tk,bkd->btd", h[:, :3], theta.reshape(5, 3, 3)) + h[:, 3:] * goal
+    torch.testing.assert_close(attractor, expected)
+    path = ds.rollout(theta, start, goal)
+    assert float((path[:, -1] - goal).norm(dim=-1).max()) < 5e-3
+    # Without it, the tip ends at the last learned attractor instead.
+    plain = DSGMR(3, duration=2.8, dt=0.02, stiffness=100.0, time_std=0.28, dtype=F64)
+    end = plain.rollout(theta, start)[:, -1]
+    assert float((end - theta[:, 6:]).norm(dim=-1).max()) < 5e-3
+    assert float((end - goal).norm(dim=-1).min()) > 0.05
+    assert ds.gmm(theta, goal).means.shape == (5, 4, 4)
+    with pytest.raises(ValueError, match="goal must be a \\[3\\] point"):
+        ds.rollout(theta, start)
+    with pytest.raises(ValueError, match="no goal component"):
+        plain.rollout(theta, start, goal)
+    with pytest.raises(ValueError, match="goal_time must lie in"):
+        DSGMR(3, duration=2.0, dt=0.02, stiffness=100.0, goal_time=2.4)
+
+
 def test_bad_inputs_raise():
     with pytest.raises(ValueError, match="multiple of dt"):
         DSGMR(3, duration=1.0, dt=0.3, stiffness=10.0)
