@@ -1,7 +1,7 @@
-"""Differential inverse kinematics: the WAM's end effector tracking a task-space path.
+"""Differential inverse kinematics: an arm's end effector tracking a task-space path.
 
 Damped least squares (Wampler 1986; Nakamura & Hanafusa 1986) on the position rows of the
-pytorch-kinematics geometric Jacobian, batched over paths:
+arm's geometric Jacobian, batched over paths:
 
     q_{k+1} = clip(q_k + Jᵀ (J Jᵀ + λ² I)⁻¹ (x*_{k+1} − f(q_k)),  q_min, q_max),
 
@@ -9,7 +9,13 @@ where f is the forward kinematics and x* the desired path. The error term is the
 the next desired point from where the arm *is*, so tracking errors are corrected at the next
 step; clipping at the joint limits and the damping near singularities make paths outside the
 arm's reach come out different from the desired ones. Only the end-effector position is
-controlled; the 4 redundant degrees of freedom take the minimum-norm joint step.
+controlled; on a redundant arm (n > 3 joints, e.g. the WAM's 7) the redundant degrees of
+freedom take the minimum-norm joint step.
+
+``kinematics`` is any object with ``dof``, ``joint_lower``/``joint_upper`` ``[n]``,
+``position_and_jacobian(q[B, n]) -> ([B, 3], [B, 3, n])``, ``forward_kinematics(q) -> [B, 3]``
+and ``clamp_to_limits``: :class:`models.kinematics.ArmKinematics` (pytorch-kinematics, any
+URDF: ``chain.jacobian``) or :class:`models.wam.WamKinematics` (the WAM's analytic DH path).
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from models.wam import WamKinematics
+from models.kinematics import ArmKinematics
 
 
 def damped_least_squares_step(jacobian: Tensor, error: Tensor, damping: float) -> Tensor:
@@ -32,16 +38,16 @@ def damped_least_squares_step(jacobian: Tensor, error: Tensor, damping: float) -
 
 
 def solve_position_ik(
-    kinematics: WamKinematics,
+    kinematics: ArmKinematics,
     target: Tensor,
     q_guess: Tensor,
     damping: float = 1e-2,
     iterations: int = 300,
     tolerance: float = 1e-7,
 ) -> Tensor:
-    """Joint angles ``[7]`` whose end effector is at ``target: [3]``, by iterated DLS from
-    ``q_guess: [7]``. Raises ``ValueError`` if the target is not reached within ``tolerance``
-    metres (unreachable, or outside the joint limits)."""
+    """Joint values ``[n]`` whose end effector is at ``target: [3]``, by iterated DLS from
+    ``q_guess: [n]``. Raises ``ValueError`` if the target is not reached within ``tolerance``
+    metres (unreachable, outside the joint limits, or a guess in the wrong basin)."""
     q = kinematics.clamp_to_limits(q_guess.to(kinematics.joint_lower).reshape(1, -1))
     target = target.to(q).reshape(1, 3)
     for _ in range(iterations):
@@ -53,20 +59,21 @@ def solve_position_ik(
     error = float((kinematics.forward_kinematics(q) - target).norm())
     if error > tolerance:
         raise ValueError(
-            f"inverse kinematics did not reach {target.tolist()} (residual {error:.3g} m): "
-            "the point may be outside the WAM's workspace"
+            f"inverse kinematics did not reach {target[0].tolist()} (residual {error:.3g} m) "
+            f"from the joint guess {q_guess.tolist()}: the point may be outside the arm's "
+            "workspace (or try another initial_joints)"
         )
     return q[0]
 
 
 def track_path(
-    kinematics: WamKinematics, q_start: Tensor, desired: Tensor, damping: float
+    kinematics: ArmKinematics, q_start: Tensor, desired: Tensor, damping: float
 ) -> tuple[Tensor, Tensor]:
-    """Follow ``desired: [B, T+1, 3]`` from joint angles ``q_start: [7]`` (whose end effector
-    is ``desired[:, 0]``) with DLS differential IK.
+    """Follow ``desired: [B, T+1, 3]`` from joint values ``q_start: [n]`` (whose end effector
+    is ``desired[:, 0]``) with DLS differential IK, one ``position_and_jacobian`` call a step.
 
     Returns:
-        ``joints: [B, T+1, 7]`` and the end-effector path ``positions: [B, T+1, 3]`` the arm
+        ``joints: [B, T+1, n]`` and the end-effector path ``positions: [B, T+1, 3]`` the arm
         actually makes (``positions[:, k] = f(joints[:, k])``).
     """
     batch, horizon = desired.shape[0], desired.shape[1]

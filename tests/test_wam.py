@@ -1,4 +1,5 @@
-"""Barrett WAM model: URDF forward kinematics against an independent DH implementation."""
+"""Barrett WAM model: both kinematics paths (pytorch-kinematics on the URDF, the default;
+the analytic DH fast path) against an independent numpy DH implementation and each other."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from models.wam import URDF_PATH, WamKinematics
+from models.kinematics import ArmKinematics
+from models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
 
 # Standard DH table of the WAM 7-DOF (Barrett WAM Arm User's Manual): a, alpha, d per joint.
 DH_A = np.array([0.0, 0.0, 0.045, -0.045, 0.0, 0.0, 0.0])
@@ -33,23 +35,44 @@ def dh_forward_kinematics(q: np.ndarray) -> np.ndarray:
     return transform[:3, 3]
 
 
-def test_forward_kinematics_matches_dh_table():
+def both_paths(dtype=torch.float64):
+    """The WAM through pytorch-kinematics (the default) and through its DH fast path."""
+    return ArmKinematics(URDF_PATH, END_EFFECTOR_LINK, dtype=dtype), WamKinematics(dtype=dtype)
+
+
+@pytest.mark.parametrize("path", ["pytorch_kinematics", "wam_dh"])
+def test_forward_kinematics_matches_dh_table(path):
     rng = np.random.default_rng(0)
     q = rng.uniform(LOWER, UPPER, size=(64, 7))
-    wam = WamKinematics(dtype=torch.float64)
+    wam = both_paths()[path == "wam_dh"]
     positions = wam.forward_kinematics(torch.from_numpy(q)).numpy()
     expected = np.stack([dh_forward_kinematics(row) for row in q])
     np.testing.assert_allclose(positions, expected, atol=1e-6, rtol=0)
 
 
-def test_zero_configuration_points_straight_up():
-    wam = WamKinematics(dtype=torch.float64)
+def test_fast_path_matches_pytorch_kinematics():
+    urdf, fast = both_paths()
+    q = fast.clamp_to_limits(
+        torch.randn(32, 7, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    )
+    for expected, actual in zip(
+        urdf.position_and_jacobian(q), fast.position_and_jacobian(q), strict=True
+    ):
+        torch.testing.assert_close(actual, expected, atol=1e-7, rtol=0)
+    torch.testing.assert_close(fast.jacobian(q), urdf.jacobian(q))  # both pytorch-kinematics'
+    assert urdf.joint_names == fast.joint_names == [f"wam_j{i}" for i in range(1, 8)]
+
+
+@pytest.mark.parametrize("path", ["pytorch_kinematics", "wam_dh"])
+def test_zero_configuration_points_straight_up(path):
+    wam = both_paths()[path == "wam_dh"]
     position = wam.forward_kinematics(torch.zeros(1, 7))
     torch.testing.assert_close(position, torch.tensor([[0.0, 0.0, 0.91]], dtype=torch.float64))
 
 
 def test_joint_limits_and_clamp():
     wam = WamKinematics(dtype=torch.float64)
+    np.testing.assert_allclose(both_paths()[0].joint_lower.numpy(), LOWER)
     np.testing.assert_allclose(wam.joint_lower.numpy(), LOWER)
     np.testing.assert_allclose(wam.joint_upper.numpy(), UPPER)
     clamped = wam.clamp_to_limits(torch.full((2, 7), 10.0, dtype=torch.float64))
@@ -57,8 +80,9 @@ def test_joint_limits_and_clamp():
     assert URDF_PATH.exists()
 
 
-def test_position_jacobian_matches_finite_differences():
-    wam = WamKinematics(dtype=torch.float64)
+@pytest.mark.parametrize("path", ["pytorch_kinematics", "wam_dh"])
+def test_position_jacobian_matches_finite_differences(path):
+    wam = both_paths()[path == "wam_dh"]
     q = torch.tensor([[0.3, 0.7, -0.4, 1.5, 0.2, -0.5, 0.1]], dtype=torch.float64)
     position, jacobian = wam.position_and_jacobian(q)
     torch.testing.assert_close(position, wam.forward_kinematics(q))
@@ -73,16 +97,22 @@ def test_position_jacobian_matches_finite_differences():
     assert wam.jacobian(q).shape == (1, 6, 7)
 
 
-def test_bad_joint_shape_raises():
-    wam = WamKinematics()
-    with pytest.raises(ValueError, match="shape"):
+@pytest.mark.parametrize("path", ["pytorch_kinematics", "wam_dh"])
+def test_bad_joint_shape_raises(path):
+    wam = both_paths(torch.float32)[path == "wam_dh"]
+    with pytest.raises(ValueError, match="shape \\[B, 7\\] \\(joints wam_j1, wam_j2"):
         wam.forward_kinematics(torch.zeros(3, 6))
     with pytest.raises(TypeError):
         wam.forward_kinematics(np.zeros((3, 7)))
+    with pytest.raises(ValueError, match="'wam_hand' is not a link of wam7.urdf"):
+        ArmKinematics(URDF_PATH, "wam_hand")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_runs_on_cuda():
-    wam = WamKinematics(device="cuda")
-    position, jacobian = wam.position_and_jacobian(torch.zeros(4, 7, device="cuda"))
-    assert position.device.type == "cuda" and jacobian.shape == (4, 3, 7)
+    for wam in (
+        ArmKinematics(URDF_PATH, END_EFFECTOR_LINK, device="cuda"),
+        WamKinematics(device="cuda"),
+    ):
+        position, jacobian = wam.position_and_jacobian(torch.zeros(4, 7, device="cuda"))
+        assert position.device.type == "cuda" and jacobian.shape == (4, 3, 7)
