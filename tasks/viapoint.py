@@ -4,20 +4,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from models.ds_gmr import DSGMR
+from models.kinematics import ArmKinematics, resolve_urdf_path
 from models.tracking import solve_position_ik, track_path
-from models.wam import WamKinematics
+from models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
 from tasks.base import EpisodicTask
 
-__all__ = ["ViapointTask"]
+__all__ = ["KINEMATICS", "ViapointTask"]
+
+KINEMATICS = ("pytorch_kinematics", "wam_dh")  # the choices of ViapointTask(kinematics=...)
+WAM_START_POSTURE = (0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0)  # rad, elbow bent, tool in front
 
 
 class ViapointTask(EpisodicTask):
-    r"""Move the WAM's end effector from a start to a target point through one of several
+    r"""Move an arm's end effector from a start to a target point through one of several
     alternative viapoints at each of a few pass times.
 
     ## Description
@@ -26,30 +31,38 @@ class ViapointTask(EpisodicTask):
     the tip of a Barrett WAM 7-DOF arm moves between two points; at each pass time several
     alternative viapoints are defined, so that several distinct routes are optimal (with the
     default layout, 2 alternatives at each of 3 pass times: 2³ = 8 routes, all with reward 1).
+    Any serial-chain arm given as a URDF can take the WAM's place (``urdf``, ``end_effector``,
+    ``initial_joints`` and a layout it can reach; see the README's "Use your own arm").
 
     A policy is a DS-GMR trajectory (:class:`models.ds_gmr.DSGMR`, Calinon et al. 2012): a
     critically damped virtual spring-damper ``ẍ = K_P (x̂(t) − x) − K_V ẋ`` pulls the tip
     towards the attractor path ``x̂(t)`` that Gaussian mixture regression retrieves from a GMM
-    over ``[t, x]`` with ``K = len(pass_times)`` components. The policy parameters are the
-    components' spatial centres, ``θ = [μ_1^x, ..., μ_K^x]`` (``D = 3K = 9``). The desired
-    task-space path is then tracked by the simulated WAM (:func:`models.tracking.track_path`:
-    damped-least-squares differential IK on the pytorch-kinematics Jacobian, joint limits
-    enforced), and the reward is computed on the end-effector path the arm actually makes.
+    over ``[t, x]`` with ``K = len(pass_times)`` learned components and, with
+    ``end_at_target`` (default), one fixed final component at the target. The policy
+    parameters are the learned components' spatial centres, ``θ = [μ_1^x, ..., μ_K^x]``
+    (``D = 3K = 9``). The desired task-space path is then tracked by the simulated arm
+    (:func:`models.tracking.track_path`: damped-least-squares differential IK on the arm's
+    position Jacobian, joint limits enforced), and the reward is computed on the end-effector
+    path the arm actually makes. The kinematics (forward kinematics and Jacobian, batched over
+    rollouts) are pytorch-kinematics' (:class:`models.kinematics.ArmKinematics`,
+    ``chain.jacobian``) by default; for the bundled WAM, ``kinematics="wam_dh"`` selects the
+    analytic DH fast path (:class:`models.wam.WamKinematics`), which gives the same paths to
+    float rounding.
 
     :meth:`evaluate` rolls out ``theta: [B, 9]`` as one batched torch computation (loops over
-    time only), differentiable in ``theta``.
+    time only), differentiable in ``theta`` on either kinematics path.
 
     ## Action Space
 
-    ``θ: [3K]`` (metres, WAM base frame: origin at the shoulder, z up): the attractor centres
-    μ_i^x, component-major (``θ[3i:3i+3] = μ_i^x``). The arm's joint velocities are not
-    actions: the differential IK derives them from the DS-GMR path.
+    ``θ: [3K]`` (metres, the arm's base frame; for the WAM: origin at the shoulder, z up): the
+    attractor centres μ_i^x, component-major (``θ[3i:3i+3] = μ_i^x``). The arm's joint
+    velocities are not actions: the differential IK derives them from the DS-GMR path.
 
     ## Observation Space
 
     None is given to the policy (open-loop trajectory). :meth:`trajectory` returns the
-    end-effector path ``[B, T+1, 3]`` (m) and :meth:`route` which alternative is nearest at
-    each pass time.
+    end-effector path ``[B, T+1, 3]`` (m), :meth:`route` which alternative is nearest at each
+    pass time and :meth:`end_point_error` how far the path ends from the target.
 
     ## Rewards
 
@@ -60,32 +73,50 @@ class ViapointTask(EpisodicTask):
     every pass time. ``α = reward_alpha = 2.5`` 1/m: ``exp(−α d) ≥ 0.9`` for ``d ≤ 4.2`` cm
     (a route is "found" at reward ≥ 0.9: within 4.2 cm on average of viapoints 20 cm from
     their alternatives), ``≈ 0.78`` at 10 cm (the straight-line policy θ0), ``≈ 0.61`` at 20 cm.
+    The end point is not scored (eq. 9 as in the paper): the fixed final component makes the
+    path end at the target whatever θ is.
 
     ## Starting State
 
-    Deterministic: the arm at rest at ``q_start``, the joint configuration whose end effector is
-    ``start``, found once by iterated DLS inverse kinematics from ``initial_joints`` (an
-    elbow-bent posture). ``generator`` is ignored (nothing is random).
+    Deterministic: the arm at rest at ``q_start``. With a ``start`` point, ``q_start`` is the
+    joint configuration whose end effector is ``start``, found once by iterated DLS inverse
+    kinematics from ``initial_joints`` (for the WAM an elbow-bent posture); with
+    ``start=None``, ``q_start = initial_joints`` and ``start`` is its end-effector position.
+    ``generator`` is ignored (nothing is random).
 
     ## Episode End
 
-    After ``duration = 2.4`` s, i.e. ``duration / dt = 120`` steps of ``dt = 0.02`` s.
+    After ``duration = 2.8`` s, i.e. ``duration / dt = 140`` steps of ``dt = 0.02`` s.
 
     ## Arguments
 
-    * ``start``, ``target``: ``[3]`` points (m) in the WAM's workspace.
+    * ``start``, ``target``: ``[3]`` points (m) in the arm's workspace (``start=None``: the
+      end effector of ``initial_joints``).
     * ``pass_times``: ``[N_v]`` times (s) in ``(0, duration]``; rounded to the ``dt`` grid.
     * ``viapoints``: per pass time, a list of ≥ 1 alternative ``[x, y, z]`` points (m); the
       number of alternatives may differ between pass times.
     * ``reward_alpha``: α of eq. 9 in 1/m (2.5).
     * ``stiffness``: K_P of the spring-damper in 1/s² (100); ``K_V = 2 √K_P = 20`` 1/s.
-    * ``dt``, ``duration``: integration step and length of the motion in s (0.02, 2.4).
+    * ``dt``, ``duration``: integration step and length of the motion in s (0.02, 2.8).
     * ``time_std``: σ_t of the GMM components' time marginals in s (0.28; default of
       :class:`DSGMR` is half the spacing of the time centres).
+    * ``end_at_target``: add the fixed final DS-GMR component at ``target`` (True);
+      ``False`` gives the K learned components alone (paths end near the last attractor).
+    * ``goal_time``: time centre (s) of that component; ``None`` (default): halfway between
+      the last pass time and ``duration`` (2.4 s for the default layout).
     * ``exploration_std``: std (m) of the initial exploration of every attractor coordinate,
       ``sigma_start = exploration_std² I`` (0.05).
     * ``ik_damping``: λ of the damped least squares in m (0.05).
-    * ``initial_joints``: ``[7]`` joint-space guess (rad) for the start configuration.
+    * ``urdf``: the arm's URDF file (default: the bundled WAM, ``models/wam/wam7.urdf``);
+      relative paths are looked up in the current directory, then in the project root.
+    * ``end_effector``: the link the task moves (``"wam_tool"``); ``base_link``: the link
+      whose frame all points are in (default: the URDF's root link).
+    * ``joint_lower``, ``joint_upper``: ``[n]`` joint limits overriding the URDF's (``None``).
+    * ``initial_joints``: ``[n]`` start posture (rad; with ``start``, the guess of the start
+      IK). Default: the WAM's ``(0, 0.6, 0, 1.6, 0, 0, 0)`` for the bundled WAM, else the
+      middle of the joint limits.
+    * ``kinematics``: ``"pytorch_kinematics"`` (default, any URDF) or ``"wam_dh"`` (the
+      WAM's analytic DH fast path; bundled WAM URDF and ``wam_tool`` only).
     * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32;
       ``dtype`` may be a ``torch.dtype`` or its name, e.g. ``"float64"``).
 
@@ -105,6 +136,15 @@ class ViapointTask(EpisodicTask):
     * The paper learns "the position and the activation weights of the attractors" but counts
       only the 9 attractor coordinates as policy parameters; the activation weights (the GMM's
       time centres, σ_t and mixing weights) are fixed here.
+    * The paper's task moves "between two points" and its initial policy has "zero velocity"
+      at both, but with its 3 attractors alone a learned path ends wherever the last
+      attractor sits: pulled towards the last viapoint, learned paths ended about 10 cm from
+      the target (10.2 cm for every exact route of the default layout; mean over the final
+      policies of the 10 DIPOLE runs of the previous release: see the README). A fourth,
+      fixed component at the target (θ stays the 9 coordinates, eq. 9 is unchanged) and a
+      motion 0.4 s longer (2.8 s instead of 2.4 s) make every path end at the target: the exact
+      routes end within 1.8 mm of it, at under 1.5 cm/s, with the same attractor shifts from θ0
+      (at most 14.6 cm); with the end kept at 2.4 s they would end 2.2 cm short, still moving.
 
     ## Choices where the paper is silent
 
@@ -112,27 +152,30 @@ class ViapointTask(EpisodicTask):
       attractor shifts of at most about 15 cm (3 ``exploration_std``) from θ0.
     * ``reward_alpha = 2.5`` 1/m and ``exploration_std = 0.05`` m were chosen by measurement
       (``benchmarks/reproduce_viapoint.py``, 6 DIPOLE runs of 300 trials each, paper's
-      α = 1, m = 10, M = 5): with α = 5 and a 0.1 m std, no final policy mean reached reward
-      0.9 (mean final best sample 0.72); α = 5 with 0.05 m: 0.80, still no route ≥ 0.9;
-      α = 10 with 0.05 m: 0.67. DIPOLE's exploration std shrinks slowly (0.1 → ~0.06 m in
-      300 trials with a 0.1 m start: the inverse-Wishart prior dominates 5-point clusters in
-      10 dimensions), so the sample rewards stay limited by exploration noise; a smaller α
-      makes eq. 9 less steep at that noise level. With α = 2.5 and 0.05 m, runs find
-      1.7 routes on average and all 8 over 6 runs.
-    * Time centres of the GMM ``μ_i^t = i · duration / K`` (0, 0.8, 1.6 s): evenly spaced, the
-      first active at the start and the last for the final third of the motion; with the
-      first and last centres on ``start`` and ``target`` (θ0) the tip starts and ends there at
-      rest (after 2.4 s it is within 0.1 mm of the target). θ0 puts the K attractors evenly on
-      the straight line from start to target (start, midpoint, target for K = 3).
-    * The GMM covariances do not couple t and x, so GMR gives ``x̂(t) = Σ_i h_i(t) μ_i^x``.
+      α = 1, m = 10, M = 5, before the fixed final component): with α = 5 and a 0.1 m std, no
+      final policy mean reached reward 0.9 (mean final best sample 0.72); α = 5 with 0.05 m:
+      0.80, still no route ≥ 0.9; α = 10 with 0.05 m: 0.67. DIPOLE's exploration std shrinks
+      slowly (0.1 → ~0.06 m in 300 trials with a 0.1 m start: the inverse-Wishart prior
+      dominates 5-point clusters in 10 dimensions), so the sample rewards stay limited by
+      exploration noise; a smaller α makes eq. 9 less steep at that noise level. With
+      α = 2.5 and 0.05 m, runs found 1.7 routes on average and all 8 over 6 runs.
+    * Time centres of the GMM: the K learned components and the target component evenly
+      spaced on ``[0, goal_time]`` (0, 0.8, 1.6 s and the target at 2.4 s), the first active
+      at the start; θ0 puts the K attractors evenly on the straight line from start to
+      target (start, midpoint, target for K = 3), so the tip moves along that line and ends
+      at the target at rest. Without the target component (``end_at_target=False``) the
+      centres are ``i · duration / K``.
+    * The GMM covariances do not couple t and x, so GMR gives ``x̂(t) = Σ_i h_i(t) μ_i^x``
+      (+ ``h_g(t)`` times the target).
     * ``K_P = 100`` 1/s² (time constant 0.1 s: the tip lags the attractor by about 0.2 s),
       critically damped ``K_V = 2 √K_P``; semi-implicit Euler at ``dt = 0.02`` s.
     * ``exploration_std = 0.05`` m: the attractors of ±3σ draws stay within 0.15 m of the
       straight line, well inside the WAM's 0.91 m reach (the paper: "the initial covariance
       is set so that the trajectory stays within the workspace of the robot").
     * Differential IK: DLS on the 3 position rows of the Jacobian with damping λ = 0.05 m,
-      error feedback to the next desired point, joint positions clamped to Barrett's limits;
-      the redundant degrees of freedom take the minimum-norm step (no null-space posture task).
+      error feedback to the next desired point, joint positions clamped to the joint limits
+      (Barrett's for the WAM); the redundant degrees of freedom take the minimum-norm step
+      (no null-space posture task).
 
     Example:
         >>> task = ViapointTask()
@@ -142,7 +185,7 @@ class ViapointTask(EpisodicTask):
 
     def __init__(
         self,
-        start: Sequence[float] = (0.5, -0.35, 0.0),
+        start: Sequence[float] | None = (0.5, -0.35, 0.0),
         target: Sequence[float] = (0.5, 0.35, 0.0),
         pass_times: Sequence[float] = (0.4, 1.2, 2.0),
         viapoints: Sequence[Sequence[Sequence[float]]] = (
@@ -153,11 +196,19 @@ class ViapointTask(EpisodicTask):
         reward_alpha: float = 2.5,
         stiffness: float = 100.0,
         dt: float = 0.02,
-        duration: float = 2.4,
+        duration: float = 2.8,
         time_std: float | None = 0.28,
+        end_at_target: bool = True,
+        goal_time: float | None = None,
         exploration_std: float = 0.05,
         ik_damping: float = 0.05,
-        initial_joints: Sequence[float] = (0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0),
+        urdf: str | Path = URDF_PATH,
+        end_effector: str = END_EFFECTOR_LINK,
+        base_link: str | None = None,
+        joint_lower: Sequence[float] | None = None,
+        joint_upper: Sequence[float] | None = None,
+        initial_joints: Sequence[float] | None = None,
+        kinematics: str = "pytorch_kinematics",
         device: str | torch.device = "cpu",
         dtype: torch.dtype | str = torch.float32,
     ) -> None:
@@ -166,10 +217,9 @@ class ViapointTask(EpisodicTask):
         if not self.dtype.is_floating_point:
             raise ValueError(f"dtype must be a floating dtype, got {dtype!r}")
         factory = {"device": self.device, "dtype": self.dtype}
-        start, target, pass_times, viapoints, initial_joints = map(
-            _plain, (start, target, pass_times, viapoints, initial_joints)
+        start, target, pass_times, viapoints, initial_joints, joint_lower, joint_upper = map(
+            _plain, (start, target, pass_times, viapoints, initial_joints, joint_lower, joint_upper)
         )
-        self.start = _point(start, "start", factory)
         self.target = _point(target, "target", factory)
         for name, value in (
             ("reward_alpha", reward_alpha),
@@ -188,6 +238,14 @@ class ViapointTask(EpisodicTask):
                 f"viapoints must give a list of alternatives for each of the "
                 f"{len(self.pass_times)} pass times, got {len(viapoints)} lists"
             )
+        for t in self.pass_times:
+            if not (0 < t <= duration):
+                raise ValueError(f"pass_times must lie in (0, duration={duration}], got {t}")
+        self.end_at_target = bool(end_at_target)
+        if self.end_at_target and goal_time is None:
+            goal_time = 0.5 * (max(self.pass_times) + duration)
+        elif not self.end_at_target:
+            goal_time = None
         self.dynamics = DSGMR(
             num_attractors=len(self.pass_times),
             duration=duration,
@@ -195,14 +253,11 @@ class ViapointTask(EpisodicTask):
             stiffness=stiffness,
             dim=3,
             time_std=time_std,
+            goal_time=goal_time,
             device=self.device,
             dtype=self.dtype,
         )
-        self.pass_indices = []
-        for t in self.pass_times:
-            if not (0 < t <= self.dynamics.duration):
-                raise ValueError(f"pass_times must lie in (0, duration={duration}], got {t}")
-            self.pass_indices.append(round(t / self.dynamics.dt))
+        self.pass_indices = [round(t / self.dynamics.dt) for t in self.pass_times]
         self._pass_index = torch.tensor(self.pass_indices, device=self.device)
         # Alternatives padded to [N_v, A_max, 3] by repeating the first one (a duplicate never
         # changes the nearest distance, and argmin returns the first of equal entries).
@@ -212,12 +267,37 @@ class ViapointTask(EpisodicTask):
         self.viapoints = torch.stack(
             [torch.cat([a, a[:1].expand(most - a.shape[0], 3)]) for a in alternatives]
         )
-        self.kinematics = WamKinematics(device=self.device, dtype=self.dtype)
+        self.kinematics = _make_kinematics(
+            kinematics, urdf, end_effector, base_link, joint_lower, joint_upper, factory
+        )
+        is_wam = self.kinematics.urdf_path == URDF_PATH.resolve()
+        if initial_joints is None:
+            if is_wam and end_effector == END_EFFECTOR_LINK and base_link in (None, "wam_base"):
+                initial_joints = WAM_START_POSTURE
+            else:
+                initial_joints = self.kinematics.middle_posture().tolist()
         guess = torch.as_tensor(initial_joints, **factory)
-        if guess.shape != (7,):
-            raise ValueError(f"initial_joints must have 7 entries, got {list(guess.shape)}")
-        tolerance = 1e-8 if self.dtype == torch.float64 else 1e-5  # m
-        self.q_start = solve_position_ik(self.kinematics, self.start, guess, tolerance=tolerance)
+        if guess.shape != (self.kinematics.dof,) or not torch.isfinite(guess).all():
+            raise ValueError(
+                f"initial_joints must give {self.kinematics.dof} finite values (joints "
+                f"{', '.join(self.kinematics.joint_names)}), got {initial_joints!r}"
+            )
+        if start is None:
+            outside = (guess < self.kinematics.joint_lower) | (guess > self.kinematics.joint_upper)
+            if bool(outside.any()):
+                raise ValueError(
+                    f"initial_joints {initial_joints!r} lie outside the joint limits "
+                    f"[{self.kinematics.joint_lower.tolist()}, "
+                    f"{self.kinematics.joint_upper.tolist()}]"
+                )
+            self.q_start = guess
+            self.start = self.kinematics.forward_kinematics(guess[None])[0].detach()
+        else:
+            self.start = _point(start, "start", factory)
+            tolerance = 1e-8 if self.dtype == torch.float64 else 1e-5  # m
+            self.q_start = solve_position_ik(
+                self.kinematics, self.start, guess, tolerance=tolerance
+            )
         k = self.dynamics.num_attractors
         fractions = torch.linspace(0.0, 1.0, k, **factory) if k > 1 else torch.ones(1, **factory)
         self.theta0 = (self.start + fractions[:, None] * (self.target - self.start)).reshape(-1)
@@ -228,10 +308,11 @@ class ViapointTask(EpisodicTask):
     def desired_trajectory(self, theta: Tensor) -> Tensor:
         """The DS-GMR task-space path ``[B, T+1, 3]`` the arm is asked to follow."""
         theta = self.check_theta(theta)
-        return self.dynamics.rollout(theta, self.start)
+        goal = self.target if self.end_at_target else None
+        return self.dynamics.rollout(theta, self.start, goal)
 
     def trajectory(self, theta: Tensor) -> Tensor:
-        """The end-effector path ``[B, T+1, 3]`` (m) the WAM actually makes for ``theta``."""
+        """The end-effector path ``[B, T+1, 3]`` (m) the arm actually makes for ``theta``."""
         desired = self.desired_trajectory(theta)
         _, positions = track_path(self.kinematics, self.q_start, desired, self.ik_damping)
         return positions
@@ -244,6 +325,10 @@ class ViapointTask(EpisodicTask):
         """``[B, N_v, A]`` distances (m) from the path at each pass time to each alternative."""
         difference = self.pass_positions(path).unsqueeze(-2) - self.viapoints
         return torch.linalg.vector_norm(difference, dim=-1)
+
+    def end_point_error(self, path: Tensor) -> Tensor:
+        """``[B]`` distance (m) from the end of ``path: [B, T+1, 3]`` to the target."""
+        return torch.linalg.vector_norm(path[:, -1] - self.target, dim=-1)
 
     def reward(self, path: Tensor) -> Tensor:
         """Eq. 9 of an end-effector path ``[B, T+1, 3]``: ``[B]`` in ``[0, 1]``."""
@@ -292,24 +377,28 @@ class ViapointTask(EpisodicTask):
 
     def describe_policies(self, theta: Tensor) -> list[str]:
         """One line per policy ``theta: [K, 3K']``: its route (nearest alternative at each pass
-        time), the reward of the arm's path and the distance (cm) to the nearest viapoint at
-        each pass time, e.g.
-        ``route (0, 1, 1): below / far / above, return 0.972, misses 0.3 / 0.9 / 0.5 cm``."""
+        time), the reward of the arm's path, the distance (cm) to the nearest viapoint at each
+        pass time and the distance (cm) of the path's end from the target, e.g.
+        ``route (0, 1, 1): below / far / above, return 0.972, misses 0.3 / 0.9 / 0.5 cm,
+        ends 0.2 cm from the target``."""
         with torch.no_grad():
             path = self.trajectory(theta)
             rewards = self.reward(path)
             distances = self.viapoint_distances(path)
+            ends = (100.0 * self.end_point_error(path)).tolist()  # cm
         routes = distances.argmin(-1).tolist()
         nearest = (100.0 * distances.amin(-1)).tolist()  # cm
         return [
             f"route {tuple(route)}: {self.route_name(route)}, return {reward:.3f}, misses "
             + " / ".join(f"{d:.1f}" for d in misses)
-            + " cm"
-            for route, reward, misses in zip(routes, rewards.tolist(), nearest, strict=True)
+            + f" cm, ends {end:.1f} cm from the target"
+            for route, reward, misses, end in zip(
+                routes, rewards.tolist(), nearest, ends, strict=True
+            )
         ]
 
     def plot_policies(self, theta: Tensor, labels: Sequence[str] | None = None, title=None):
-        """A 3-D matplotlib figure of the end-effector paths the WAM makes for the policies
+        """A 3-D matplotlib figure of the end-effector paths the arm makes for the policies
         ``theta: [K, 3K']``, with the viapoints (one colour per pass time), start and target.
 
         ``labels`` (one per policy) replace the default legend entries (route and return).
@@ -361,13 +450,44 @@ class ViapointTask(EpisodicTask):
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_zlabel("z [m]")
-        ax.set_title(title or f"WAM end-effector paths of {path.shape[0]} policies")
+        arm = "WAM" if self.kinematics.urdf_path == URDF_PATH.resolve() else None
+        arm = arm or self.kinematics.robot_name
+        ax.set_title(title or f"{arm} end-effector paths of {path.shape[0]} policies")
         everything = np.concatenate([path.reshape(-1, 3), self.viapoints.reshape(-1, 3).cpu()])
         ax.set_box_aspect(np.ptp(everything, axis=0) + 0.02)  # equal scale on x, y, z
         ax.view_init(elev=20, azim=-35)
         ax.legend(loc="center left", fontsize=8, bbox_to_anchor=(1.02, 0.5))
         figure.subplots_adjust(left=0.0, right=0.62, bottom=0.05, top=0.95)
         return figure
+
+
+def _make_kinematics(
+    name: str,
+    urdf: str | Path,
+    end_effector: str,
+    base_link: str | None,
+    joint_lower: Sequence[float] | None,
+    joint_upper: Sequence[float] | None,
+    factory: dict,
+) -> ArmKinematics:
+    """The arm's kinematics: ``"pytorch_kinematics"`` (any URDF) or ``"wam_dh"`` (the WAM's
+    analytic fast path, which needs the bundled WAM URDF, ``wam_tool`` and ``wam_base``)."""
+    if name == "pytorch_kinematics":
+        return ArmKinematics(urdf, end_effector, base_link, joint_lower, joint_upper, **factory)
+    if name == "wam_dh":
+        if (
+            resolve_urdf_path(urdf) != URDF_PATH.resolve()
+            or end_effector != END_EFFECTOR_LINK
+            or base_link not in (None, "wam_base")
+        ):
+            raise ValueError(
+                f"kinematics='wam_dh' is the analytic fast path of the bundled WAM only "
+                f"(urdf {URDF_PATH}, end_effector {END_EFFECTOR_LINK!r}); got urdf {urdf!r}, "
+                f"end_effector {end_effector!r}, base_link {base_link!r}: use "
+                "kinematics='pytorch_kinematics' for other arms"
+            )
+        return WamKinematics(joint_lower=joint_lower, joint_upper=joint_upper, **factory)
+    raise ValueError(f"kinematics must be one of {', '.join(KINEMATICS)}, got {name!r}")
 
 
 def _plain(value):
