@@ -260,7 +260,8 @@ def neal8_sweep(
     def auxiliary(start: int, stop: int) -> _Auxiliary:
         """m fresh draws from H for each point of ``y[start:stop]``, with their scores."""
         size = stop - start
-        means, covs = prior.sample(size * m, generator)
+        # Unsymmetrised: only the lower triangles are read, until a component opens.
+        means, covs = prior.sample(size * m, generator, symmetrize=False)
         means, covs = means.reshape(size, m, d), covs.reshape(size, m, d, d)
         tril = torch.linalg.cholesky(covs)
         log_lik = _log_prob_tril(y[start:stop, None, :], means, tril)
@@ -577,7 +578,8 @@ def _chunk_size(n: int, m: int, d: int) -> int:
 
 @dataclass
 class _Auxiliary:
-    """The auxiliary components of a chunk of C points: ``means [C, m, D]``, ``covs`` and
+    """The auxiliary components of a chunk of C points: ``means [C, m, D]``, ``covs``
+    (symmetric up to rounding: only their lower triangles and factors are used) and
     their Cholesky factors ``tril [C, m, D, D]``, ``log_r [C, m]`` (log r_c, 0 unweighted) and
     ``score [C, m]`` = log(α/m) + log r_c + log N(y_i; μ, Σ)."""
 
@@ -668,7 +670,7 @@ def _label_pass_numpy(
                         log_counts = np.concatenate((log_counts, np.full(k - 1, -math.inf)))
                         logits = np.empty(capacity + m)
                 r = i - start
-                mean, cov, tril = aux.means[r, j], aux.covs[r, j], aux.tril[r, j]
+                mean, cov, tril = aux.means[r, j], _symmetric(aux.covs[r, j]), aux.tril[r, j]
                 lr = float(aux.log_r[r, j])
                 opened[new] = (mean, cov, tril, lr)
                 if i + 1 < stop:
@@ -779,7 +781,7 @@ def _sync_free_step(
     tril_j = aux.tril[r].index_select(0, j)
     means.index_copy_(0, new, torch.where(opens[:, None], mean_j, means.index_select(0, new)))
     wide = opens[:, None, None]
-    cov_j = aux.covs[r].index_select(0, j)
+    cov_j = _symmetric(aux.covs[r].index_select(0, j))
     covs.index_copy_(0, new, torch.where(wide, cov_j, covs.index_select(0, new)))
     tril.index_copy_(0, new, torch.where(wide, tril_j, tril.index_select(0, new)))
     lr_j = aux.log_r[r].index_select(0, j)
@@ -800,6 +802,10 @@ def _slot_parameters(
     for slot, (mean, cov, _, _) in opened.items():
         means[slot], covs[slot] = mean, cov
     return means, covs
+
+
+def _symmetric(matrix: Tensor) -> Tensor:
+    return 0.5 * (matrix + matrix.transpose(-1, -2))
 
 
 def _free_slot(counts: list[int], k: int) -> int:

@@ -121,10 +121,13 @@ class NormalInverseWishartPrior:
         uniforms = torch.rand(num_uniforms, generator=generator, dtype=DTYPE, device=where)
         return covariance, uniforms.to(scale.device)
 
-    def sample(self, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    def sample(
+        self, n: int, generator: torch.Generator | None = None, symmetrize: bool = True
+    ) -> tuple[Tensor, Tensor]:
         """Draw n component parameters from H (means first, then covariances).
 
-        Ψ0 and Σ0 are factorised once for all n draws.
+        Ψ0 and Σ0 are factorised once for all n draws. ``symmetrize=False`` leaves the
+        covariances symmetric up to rounding (see :func:`dipole_torch.sampling.inverse_wishart`).
 
         Returns:
             means ``[n, D]``, covariances ``[n, D, D]`` (regularised).
@@ -135,7 +138,7 @@ class NormalInverseWishartPrior:
         mean_tril = torch.linalg.cholesky(self.mean_covariance)
         means = self.mean_loc + z.to(self.mean_loc.device) @ mean_tril.T
         scale_tril = torch.linalg.cholesky(self.scale).expand(n, d, d)
-        covariances = inverse_wishart(self.df, scale_tril, generator)
+        covariances = inverse_wishart(self.df, scale_tril, generator, symmetrize)
         return means, covariances + self.regularization
 
     def updated(

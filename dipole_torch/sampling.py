@@ -156,7 +156,10 @@ def bartlett_factor(
 
 
 def inverse_wishart(
-    df: torch.Tensor | float, scale_tril: torch.Tensor, generator: torch.Generator | None = None
+    df: torch.Tensor | float,
+    scale_tril: torch.Tensor,
+    generator: torch.Generator | None = None,
+    symmetrize: bool = True,
 ) -> torch.Tensor:
     """Σ ~ IW(df, Ψ) with Ψ = L Lᵀ, drawn as Σ = (L A⁻ᵀ)(L A⁻ᵀ)ᵀ.
 
@@ -169,6 +172,9 @@ def inverse_wishart(
         scale_tril: ``[*batch, p, p]`` lower Cholesky factor L of Ψ (batch dims broadcast
             with ``df``'s; an expanded L costs no extra factorisations).
         generator: the source of randomness.
+        symmetrize: average the draw with its transpose. ``Bᵀ B`` is symmetric only up to
+            rounding; a caller that reads one triangle (a Cholesky factorisation) can skip
+            the extra pass over N·m auxiliary matrices and symmetrise the few it keeps.
 
     Returns:
         ``[*batch, p, p]`` symmetric positive-definite draws.
@@ -180,7 +186,7 @@ def inverse_wishart(
     upper = scale_tril.transpose(-1, -2).expand(*batch, p, p)
     root = torch.linalg.solve_triangular(factor, upper, upper=False)
     sigma = root.transpose(-1, -2) @ root
-    return 0.5 * (sigma + sigma.transpose(-1, -2))
+    return 0.5 * (sigma + sigma.transpose(-1, -2)) if symmetrize else sigma
 
 
 def wishart(

@@ -366,9 +366,9 @@ def test_auxiliary_draws_are_chunked(monkeypatch):
     sizes = []
     original = NormalInverseWishartPrior.sample
 
-    def spy(self, n, generator=None):
+    def spy(self, n, *args, **kwargs):
         sizes.append(n)
-        return original(self, n, generator)
+        return original(self, n, *args, **kwargs)
 
     monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
     neal8_sweep(y, state, generator=torch.Generator().manual_seed(0), update_prior=False)
