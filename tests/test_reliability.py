@@ -477,7 +477,8 @@ def finished_run(tmp_path_factory):
 
 # ------------------------------------------------------------------ 2, 8: kill, signals
 KILLS = 24
-TRIALS = 130
+TRIALS = 150  # the SIGKILL run
+SIGNAL_TRIALS = 60  # the SIGTERM and SIGINT runs
 BASE = [
     "task=multimodal",
     "algo=dipole",
@@ -512,7 +513,7 @@ def test_sigkill_at_random_moments_then_resume_gives_the_uninterrupted_results(d
     trials = [k["checkpoint_trials"] for k in kill["kills"]]
     assert all(b >= a for a, b in zip(trials, trials[1:], strict=False))
     assert kill["resumes"] >= 20 and 0 < max(trials) < TRIALS
-    assert len({t for t in trials if t}) >= 5  # kills at many different points of the run
+    assert len({t for t in trials if t}) >= 4  # kills at many different points of the run
     # Kills in the middle of a checkpoint write left its temporary (and the previous
     # checkpoint, which loaded); the next session removed it.
     assert kill["kills_leaving_a_temporary"] >= 3
@@ -526,14 +527,16 @@ def test_a_signal_writes_a_checkpoint_and_prints_the_resume_command(driver_repor
     assert stop["exit_code"] == code, stop["log"]
     assert "Traceback" not in stop["log"], stop["log"]
     assert f"stopped by {name} at" in stop["log"] and "resume with:" in stop["log"]
-    assert 0 < stop["checkpoint_trials"] < TRIALS
+    assert 0 < stop["checkpoint_trials"] < SIGNAL_TRIALS
     # The printed command, run as printed, finishes the run as if never stopped.
     assert stop["resumed_exit_code"] == 0, stop["resumed_log"]
     assert stop["identical"] == {"results": True, "policies": True, "checkpoint": True}
 
 
 # ------------------------------------------------------------------ the driver process
-def _fork_train(train, args, log):
+def _fork_train(train, args, log, slow_disk=False):
+    """Run ``train.main()`` with ``args`` in a forked child; return its pid. ``slow_disk``:
+    every fsync takes 20 ms longer (a slow disk), so that more kills land mid-write."""
     sys.stdout.flush()
     sys.stderr.flush()
     pid = os.fork()
@@ -544,6 +547,14 @@ def _fork_train(train, args, log):
         fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         os.dup2(fd, 1)
         os.dup2(fd, 2)
+        if slow_disk:
+            fsync = os.fsync
+
+            def slow_fsync(fd):
+                time.sleep(0.02)
+                fsync(fd)
+
+            os.fsync = slow_fsync
         sys.argv = ["train.py", *args]
         train.main()
         code = 0
@@ -606,7 +617,7 @@ def _driver(work: Path, kills: int) -> dict:
     iterations = len(json.loads((reference / "results.json").read_text())["history"]["trials"])
     period = report["reference_s"] / iterations  # an iteration, its checkpoint included
 
-    # SIGKILL at random moments: after a random number (0-2) of the session's checkpoint
+    # SIGKILL at random moments: after a random number (0-1) of the session's checkpoint
     # writes, a random time within about one iteration. Each session resumes from whatever
     # checkpoint the previous one left.
     rng = random.Random(0)
@@ -618,13 +629,13 @@ def _driver(work: Path, kills: int) -> dict:
         resume = checkpoint.exists()
         kill["resumes"] += resume
         args = [*BASE, f"hydra.run.dir={run}"] + ([f"resume={checkpoint}"] if resume else [])
-        pid = _fork_train(train, args, work / "killed.log")
+        pid = _fork_train(train, args, work / "killed.log", slow_disk=True)
         status = None
         if len(kill["kills"]) < kills:
-            writes, delay = rng.choice([0, 0, 1, 1]), rng.uniform(0.0, period)
-            # Every fourth kill lands while a checkpoint is being written (its temporary
+            writes, delay = rng.choice([0, 0, 0, 1, 1]), rng.uniform(0.0, 0.8 * period)
+            # Every third kill lands while a checkpoint is being written (its temporary
             # exists), or after two iterations' time if none is seen.
-            mid_write = len(kill["kills"]) % 4 == 3
+            mid_write = len(kill["kills"]) % 3 == 2
             inode, deadline = _inode(checkpoint), None
             if mid_write:
                 deadline = time.monotonic() + 1.0 + 2 * period
@@ -669,24 +680,30 @@ def _driver(work: Path, kills: int) -> dict:
     report["kill"] = kill
 
     # SIGTERM and SIGINT once the loop runs; then the printed command, as printed.
+    short = [arg for arg in BASE if not arg.startswith("trials=")] + [f"trials={SIGNAL_TRIALS}"]
+    short_reference = work / "short_reference"
+    sys.argv = ["train.py", *short, f"hydra.run.dir={short_reference}"]
+    train.main()
     for signum in (signal.SIGTERM, signal.SIGINT):
         run = work / signum.name
         log = work / f"{signum.name}.log"
-        pid = _fork_train(train, [*BASE, f"hydra.run.dir={run}"], log)
-        while not (run / "checkpoint.pt").exists():
+        pid = _fork_train(train, [*short, f"hydra.run.dir={run}"], log)
+        deadline = time.monotonic() + 60
+        while not (run / "checkpoint.pt").exists() and time.monotonic() < deadline:
             time.sleep(0.002)
-        time.sleep(0.05)
+        time.sleep(0.02)
         os.kill(pid, signum)
-        stop = {"exit_code": _wait(pid), "log": log.read_text()}
+        stop = {"exit_code": _wait(pid), "log": log.read_text(), "resumed_exit_code": None}
         stop["checkpoint_trials"] = _checkpoint_trials(run / "checkpoint.pt")
         lines = stop["log"].splitlines()
-        command = shlex.split(lines[lines.index("resume with:") + 1])
-        assert command[0] == "python" and command[1].endswith("train.py"), command
-        resumed_log = work / f"{signum.name}.resumed.log"
-        stop["resumed_exit_code"] = _wait(_fork_train(train, command[2:], resumed_log))
-        stop["resumed_log"] = resumed_log.read_text()[-2000:]
-        if stop["resumed_exit_code"] == 0:
-            stop["identical"] = _compare(reference, run)
+        if "resume with:" in lines:
+            command = shlex.split(lines[lines.index("resume with:") + 1])
+            assert command[0] == "python" and command[1].endswith("train.py"), command
+            resumed_log = work / f"{signum.name}.resumed.log"
+            stop["resumed_exit_code"] = _wait(_fork_train(train, command[2:], resumed_log))
+            stop["resumed_log"] = resumed_log.read_text()[-2000:]
+            if stop["resumed_exit_code"] == 0:
+                stop["identical"] = _compare(short_reference, run)
         report[signum.name] = stop
     return report
 
