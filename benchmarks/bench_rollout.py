@@ -1,4 +1,5 @@
-"""Throughput of the batched torch cart-pole against gymnasium's CartPole-v1.
+"""Rollout throughput: the batched torch cart-pole against gymnasium's CartPole-v1, and the
+viapoint task on both of its kinematics paths.
 
 Environment steps per second, linear policy included, for B parallel episodes:
 
@@ -14,7 +15,16 @@ Environment steps per second, linear policy included, for B parallel episodes:
 Gymnasium's CartPole-v1 takes discrete actions: its policy is ``action = θᵀx > 0``; ours is the
 continuous ``u = clip(θᵀx)``. The gymnasium environments reset automatically when an
 episode ends; ours freezes failed episodes (the work per step is the same either way).
-Run: ``python benchmarks/bench_rollout.py [--threads N] [--device cuda]``.
+
+Viapoint (``--task viapoint``): seconds per :meth:`tasks.viapoint.ViapointTask.evaluate`
+(DS-GMR path, 140-step tracking IK on the WAM, eq. 9) of B policies drawn around θ0 with the
+task's exploration std, for the default kinematics (pytorch-kinematics' forward kinematics
+and ``chain.jacobian`` on the URDF) and the WAM's analytic DH fast path
+(``kinematics=wam_dh``), on the same θ in the same run, best of ``--repeats`` timings; the
+ratio is pytorch-kinematics' time over the DH path's.
+
+Run: ``python benchmarks/bench_rollout.py [--task cartpole|viapoint|all] [--threads N]
+[--device cuda]``.
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ import numpy as np
 import torch
 
 from tasks.cartpole import CartPoleTask
+from tasks.viapoint import KINEMATICS, ViapointTask
 
 THETA = np.array([0.91, 2.14, 30.9, 7.9])  # an LQR gain: long episodes, few resets
 
@@ -81,15 +92,73 @@ def bench_gym_vector(env: gym.vector.VectorEnv, batch: int, steps: int) -> float
     return steps_per_second(run, batch * steps)
 
 
+def bench_viapoint(batches: tuple[int, ...], device: str, repeats: int) -> list[dict]:
+    """Seconds per ``evaluate`` of ``B`` policies for each kinematics path and batch size:
+    rows ``{"B", "pytorch_kinematics", "wam_dh", "ratio"}`` (ratio: pytorch-kinematics ÷ DH).
+
+    The two paths are timed alternately on the same θ (``repeats`` rounds, best of each), so
+    that load from other processes affects both alike."""
+    tasks = {name: ViapointTask(kinematics=name, device=device) for name in KINEMATICS}
+    reference = tasks[KINEMATICS[0]]
+    generator = torch.Generator().manual_seed(0)
+    std = float(reference.sigma_start[0, 0]) ** 0.5
+    rows = []
+    for batch in batches:
+        noise = torch.randn(batch, reference.parameter_dim, generator=generator)
+        theta = (reference.theta0.cpu() + std * noise).to(device)
+        best = dict.fromkeys(tasks, float("inf"))
+        for task in tasks.values():
+            task.evaluate(theta[:2])  # warm-up
+        for _ in range(repeats):
+            for name, task in tasks.items():
+                start = time.perf_counter()
+                task.evaluate(theta)
+                if device.startswith("cuda"):
+                    torch.cuda.synchronize()
+                best[name] = min(best[name], time.perf_counter() - start)
+        rows.append({"B": batch, **best, "ratio": best["pytorch_kinematics"] / best["wam_dh"]})
+    return rows
+
+
+def print_viapoint(rows: list[dict], device: str) -> None:
+    steps = ViapointTask().dynamics.steps
+    print(
+        f"viapoint: seconds per evaluate of B policies ({steps} tracking steps, WAM 7-DOF), "
+        f"device {device}, {torch.get_num_threads()} torch threads"
+    )
+    header = f"{'B':>6} | {'pytorch-kinematics':>18} | {'analytic DH':>11} | pk ÷ DH"
+    print(header)
+    print("-" * len(header))
+    for row in rows:
+        print(
+            f"{row['B']:>6} | {row['pytorch_kinematics']:>17.4f}s | {row['wam_dh']:>10.4f}s | "
+            f"{row['ratio']:6.2f}x"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", choices=("cartpole", "viapoint", "all"), default="all")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--steps", type=int, default=1000, help="steps per episode")
+    parser.add_argument("--steps", type=int, default=1000, help="cart-pole steps per episode")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")
+    parser.add_argument(
+        "--batches", type=int, nargs="+", default=[1, 10, 100, 1000], help="viapoint batch sizes"
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="viapoint timings per case")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.task in ("cartpole", "all"):
+        bench_cartpole(args)
+    if args.task in ("viapoint", "all"):
+        rows = bench_viapoint(tuple(args.batches), args.device, args.repeats)
+        print_viapoint(rows, args.device)
+
+
+def bench_cartpole(args: argparse.Namespace) -> None:
+    """The cart-pole table: env steps per second, ours against gymnasium's."""
     steps = args.steps
     print(
         f"torch {torch.__version__}, gymnasium {gym.__version__}, device {args.device}, "

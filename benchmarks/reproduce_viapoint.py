@@ -22,6 +22,10 @@ takes it with reward ≥ 0.9 (``--threshold``). A second, looser count is also r
 routes of the samples in the final policies' importance sets (the best M = 5 samples of each
 policy, all evaluated with exploration noise) whose reward is ≥ 0.9.
 
+**End-point error**: the distance from the end of each final policy mean's arm path to the
+target (:meth:`ViapointTask.end_point_error`; eq. 9 does not score it), averaged over the
+run's final policy means, then mean ± std over runs (printed in cm, in the JSON in m).
+
 Both algorithms get the task's θ0, Σ_start, n0 = 30, M = 5 and reward range (the paper's "same
 parameters as PoWER"); DIPOLE uses the paper's α = 1, m = 10 (``configs/algo/dipole.yaml``
 defaults); PoWER keeps Σ_start throughout (``configs/algo/power.yaml``). The task comes from
@@ -30,7 +34,8 @@ their ``ask()`` batches are stacked into one ``task.evaluate`` call (the task is
 and batch-independent). Writes ``docs/figures/figure2_viapoint.png``,
 ``docs/figures/figure3_routes.png`` and ``docs/figures/viapoint.json``::
 
-    python benchmarks/reproduce_viapoint.py            # 10 runs per algorithm, ~3 min on 2 cores
+    python benchmarks/reproduce_viapoint.py            # 10 runs per algorithm, minutes on 2 cores
+    python benchmarks/reproduce_viapoint.py --workers 15   # 43 s on an idle 16-core host
     python benchmarks/reproduce_viapoint.py --runs 2   # quick look
 """
 
@@ -85,8 +90,11 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
     runs = []
     for seed, opt, h in zip(seeds, optimizers, history, strict=True):
         means = opt.policy_means.to(task.dtype)
-        mean_rewards = task.evaluate(means).double()
-        mean_routes = task.route(means).tolist()
+        with torch.no_grad():
+            paths = task.trajectory(means)  # [K, T+1, 3] arm paths of the final policy means
+        mean_rewards = task.reward(paths).double()
+        mean_routes = task.viapoint_distances(paths).argmin(-1).tolist()
+        end_errors = task.end_point_error(paths).double()
         kept_routes = task.route(opt.thetas.to(task.dtype)).tolist()
         kept_rewards = opt.rewards.tolist()
         routes = {
@@ -108,6 +116,8 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
                 "policy_means": means.double().tolist(),
                 "policy_rewards": mean_rewards.tolist(),
                 "policy_routes": mean_routes,
+                "policy_end_point_errors_m": end_errors.tolist(),
+                "end_point_error_m": float(end_errors.mean()),
                 "routes_found": {str(route): r for route, r in sorted(routes.items())},
                 "routes_in_samples": sorted(str(route) for route in sample_routes),
                 "best_reward_so_far": opt.best()[1],
@@ -167,7 +177,9 @@ def main() -> None:
             "step-interpolated on the trials grid; mean and std over runs. A route is found "
             "when a final policy mean (no exploration noise) takes it with reward >= threshold; "
             "routes_in_samples counts the routes of the final importance-set samples (with "
-            "exploration noise) with reward >= threshold."
+            "exploration noise) with reward >= threshold. end_point_error_m: distance (m) from "
+            "the end of each final policy mean's arm path to the target, averaged over the "
+            "run's final policy means; mean and std over runs."
         ),
         "runs": args.runs,
         "trials": trials,
@@ -200,6 +212,10 @@ def main() -> None:
                 float(np.std([max(run["policy_rewards"]) for run in runs])),
             ],
             "routes_per_run": [float(np.mean(found)), float(np.std(found))],
+            "end_point_error_m": [
+                float(np.mean([run["end_point_error_m"] for run in runs])),
+                float(np.std([run["end_point_error_m"] for run in runs])),
+            ],
             "routes_covered": covered,
             "routes_per_run_in_samples": [float(np.mean(in_samples)), float(np.std(in_samples))],
             "routes_covered_in_samples": covered_samples,
@@ -221,7 +237,9 @@ def main() -> None:
             f"{summary[algo]['final_best'][1]:.3f}, average {summary[algo]['final_average'][0]:.3f}"
             f" ± {summary[algo]['final_average'][1]:.3f}; routes per run {np.mean(found):.2f} "
             f"(samples: {np.mean(in_samples):.2f}); routes covered {len(covered)}/"
-            f"{summary['num_routes_in_layout']} (samples: {len(covered_samples)})"
+            f"{summary['num_routes_in_layout']} (samples: {len(covered_samples)}); end-point "
+            f"error {100 * summary[algo]['end_point_error_m'][0]:.2f} ± "
+            f"{100 * summary[algo]['end_point_error_m'][1]:.2f} cm"
         )
     (args.out / "viapoint.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
 

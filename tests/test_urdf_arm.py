@@ -227,3 +227,33 @@ def test_dipole_learns_a_route_on_the_second_arm(urdf_path):
     assert all("from the target" in line for line in lines)
     figure = task.plot_policies(means)
     assert "four_joint_arm" in figure.axes[0].get_title()
+
+
+def test_readme_example_config_composes(urdf_path, tmp_path):
+    """The README's "Use your own arm" config file, with this test's URDF and end-effector
+    link, composes with Hydra as ``task=viapoint_myarm`` and builds the task on that arm."""
+    import shutil
+    from pathlib import Path
+
+    hydra = pytest.importorskip("hydra")
+    hydra_utils = pytest.importorskip("hydra.utils")
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    marker = "# configs/task/viapoint_myarm.yaml"
+    assert marker in readme
+    example = readme.split(marker, 1)[1].split("\n", 1)[1].split("```", 1)[0]
+    example = example.replace("/path/to/my_arm.urdf", str(urdf_path))
+    example = example.replace("tool_link", "tool")
+    configs = tmp_path / "configs"
+    shutil.copytree(root / "configs", configs)
+    (configs / "task" / "viapoint_myarm.yaml").write_text(example)
+    with hydra.initialize_config_dir(config_dir=str(configs), version_base=None):
+        config = hydra.compose(config_name="config", overrides=["task=viapoint_myarm"])
+    assert config.task.name == "viapoint_myarm" and config.task.trials == 300
+    task = hydra_utils.instantiate(config.task.env)
+    assert task.kinematics.robot_name == "four_joint_arm" and task.parameter_dim == 6
+    assert task.num_alternatives == [2, 1]
+    assert (
+        float((task.kinematics.forward_kinematics(task.q_start[None])[0] - task.start).norm())
+        < 1e-4
+    )
