@@ -290,11 +290,16 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
         - torch.lgamma(alpha_t + n)
         + torch.lgamma(counts).sum()
     )
-    mean_term = prior.mean_distribution().log_prob(state.means).sum()
+    # Arguments checked here once; the distributions skip their own (Cholesky) validation.
+    mean_distribution = MultivariateNormal(
+        prior.mean_loc, prior.mean_covariance, validate_args=False
+    )
+    mean_term = mean_distribution.log_prob(state.means).sum()
     sigmas = state.covariances - prior.regularization
     if bool((torch.linalg.cholesky_ex(sigmas)[1] != 0).any()):
         return torch.full((), -math.inf, dtype=counts.dtype, device=counts.device)
-    covariance_term = InverseWishart(prior.df, prior.scale.to(sigmas)).log_prob(sigmas).sum()
+    base = InverseWishart(prior.df, prior.scale.to(sigmas), validate_args=False)
+    covariance_term = base.log_prob(sigmas).sum()
     # K factorisations rather than N: every point under every component, then its own.
     components = MultivariateNormal(state.means, state.covariances, validate_args=False)
     log_lik = components.log_prob(y.to(counts.dtype).unsqueeze(-2))  # [N, K]
