@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shlex
 import signal
@@ -138,6 +139,8 @@ def load_resume(cfg: DictConfig) -> dict:
     )
     saved = checkpoint["config"]
     saved = OmegaConf.to_container(OmegaConf.create(saved)) if isinstance(saved, str) else saved
+    if not isinstance(saved, dict):
+        raise CheckpointError(f"{cfg.resume!r} holds no config (got {type(saved).__name__})")
     current = OmegaConf.to_container(cfg, resolve=True)
     differences = config_differences(saved, current, ignore=RESUME_MAY_CHANGE)
     if differences:
@@ -170,6 +173,26 @@ def load_resume(cfg: DictConfig) -> dict:
     return checkpoint
 
 
+def restore(checkpoint: dict, path: str, optimizer, task_generator, shape: dict):
+    """Load the checkpoint's optimizer and episode-generator states; return its history and
+    elapsed wall time. ``shape``: this config's task dimension and reward range, which must
+    be the checkpoint's."""
+    saved = {key: checkpoint.get(key, shape[key]) for key in shape}
+    saved["reward_range"] = saved["reward_range"] and tuple(saved["reward_range"])
+    if saved != shape:
+        raise CheckpointError(
+            f"cannot resume {path!r}: the checkpoint's task has {saved}, this config's {shape}"
+        )
+    try:
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        task_generator.set_state(checkpoint["task_generator"])
+    except (KeyError, ValueError, TypeError, RuntimeError) as error:
+        raise CheckpointError(
+            f"{path!r} does not fit this optimizer ({type(error).__name__}: {error})"
+        ) from None
+    return checkpoint["history"], float(checkpoint.get("wall_time_s", 0.0))
+
+
 def _overrides() -> list[str]:
     return list(HydraConfig.get().overrides.task)
 
@@ -199,12 +222,12 @@ class StopRequest:
         if self.signum is not None:
             raise KeyboardInterrupt(f"second {signal.Signals(signum).name}")
         self.signum = signum
-        print(
+        # os.write, not print: the handler may interrupt a print (tqdm's) to the same stream.
+        message = (
             f"\n{signal.Signals(signum).name} received: finishing this iteration, then writing "
-            "a checkpoint (send it again to stop at once)",
-            file=sys.stderr,
-            flush=True,
+            "a checkpoint (send it again to stop at once)\n"
         )
+        os.write(sys.stderr.fileno(), message.encode())
 
     def __enter__(self) -> StopRequest:
         for signum in (signal.SIGTERM, signal.SIGINT):
@@ -291,22 +314,7 @@ def main(cfg: DictConfig) -> dict:
     history: list[dict] = []
     elapsed = 0.0  # wall time of the run's earlier sessions
     if checkpoint is not None:
-        saved = {key: checkpoint.get(key, shape[key]) for key in shape}
-        saved["reward_range"] = saved["reward_range"] and tuple(saved["reward_range"])
-        if saved != shape:
-            raise CheckpointError(
-                f"cannot resume {cfg.resume!r}: the checkpoint's task has {saved}, "
-                f"this config's has {shape}"
-            )
-        try:
-            optimizer.load_state_dict(checkpoint["optimizer"])
-            task_generator.set_state(checkpoint["task_generator"])
-        except (KeyError, ValueError, TypeError, RuntimeError) as error:
-            raise CheckpointError(
-                f"{cfg.resume!r} does not fit this optimizer ({type(error).__name__}: {error})"
-            ) from None
-        history = checkpoint["history"]
-        elapsed = float(checkpoint.get("wall_time_s", 0.0))
+        history, elapsed = restore(checkpoint, cfg.resume, optimizer, task_generator, shape)
         print(f"resumed {cfg.resume} at {optimizer.trials} trials (seed {cfg.seed})")
     # purge_step hides events that a killed session logged after its last checkpoint.
     writer = SummaryWriter(

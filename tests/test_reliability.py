@@ -391,6 +391,25 @@ def test_resume_refuses_a_different_config_naming_the_keys(finished_run, overrid
     assert "The checkpoint's run resumes with: python" in str(error.value)
 
 
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda c: c.update(dimension=3), r"the checkpoint's task has \{'dimension': 3"),
+        (lambda c: c.update(reward_range=(0.0, 2.0)), r"'reward_range': \(0.0, 2.0\)"),
+        (lambda c: c["optimizer"].update(kind="Power"), "does not fit this optimizer"),
+        (lambda c: c["optimizer"].pop("thetas"), r"does not fit this optimizer \(KeyError"),
+    ],
+)
+def test_resume_refuses_a_checkpoint_whose_contents_do_not_fit(
+    finished_run, tmp_path, edit, message
+):
+    checkpoint = load_checkpoint(finished_run / "checkpoint.pt")
+    edit(checkpoint)
+    atomic_save(checkpoint, tmp_path / "checkpoint.pt")
+    with pytest.raises(CheckpointError, match=message):
+        run_train(f"resume={tmp_path / 'checkpoint.pt'}", "trials=60")
+
+
 def test_resume_keeps_the_seed_and_the_directory_of_the_checkpoint(finished_run, tmp_path):
     copy = tmp_path / "seed3_run"
     copy.mkdir()
