@@ -229,6 +229,6 @@ def test_geweke_neal8_sweep_samples_the_model(forward_statistics):
     ids=["label-step-wrong-alpha", "covariance-step-without-mh"],
 )
 def test_geweke_detects_a_broken_conditional(forward_statistics, broken, detected_by):
-    chain = _chain_statistics(600, seed=2, sweep=broken)
+    chain = _chain_statistics(800, seed=2, sweep=broken)
     z = _geweke_z(forward_statistics, chain)
     assert (z[detected_by].abs() > Z_LIMIT).all(), f"Geweke z-scores {z.tolist()}"
