@@ -138,13 +138,15 @@ class ViapointTask(EpisodicTask):
       time centres, σ_t and mixing weights) are fixed here.
     * The paper's task moves "between two points" and its initial policy has "zero velocity"
       at both, but with its 3 attractors alone a learned path ends wherever the last
-      attractor sits: pulled towards the last viapoint, learned paths ended about 10 cm from
-      the target (10.2 cm for every exact route of the default layout; mean over the final
-      policies of the 10 DIPOLE runs of the previous release: see the README). A fourth,
-      fixed component at the target (θ stays the 9 coordinates, eq. 9 is unchanged) and a
-      motion 0.4 s longer (2.8 s instead of 2.4 s) make every path end at the target: the exact
-      routes end within 1.8 mm of it, at under 1.5 cm/s, with the same attractor shifts from θ0
-      (at most 14.6 cm); with the end kept at 2.4 s they would end 2.2 cm short, still moving.
+      attractor sits: pulled towards the last viapoint, the exact routes of the default
+      layout end 10.2 cm from the target, and the final policy means of the previous
+      release's 10 DIPOLE runs 9.2 ± 1.0 cm. A fourth, fixed component at the target (θ
+      stays the 9 coordinates, eq. 9 is unchanged) and a motion 0.4 s longer (2.8 s instead
+      of 2.4 s) make every path end at the target: the exact routes end 1.9 mm from it, at
+      1.3 cm/s, with the same attractor shifts from θ0 (at most 14.6 cm), and the final
+      policy means of 10 DIPOLE runs 0.17 ± 0.01 cm. Keeping the 2.4 s end (target
+      component at 2.2 s) they would end 1.4 cm short, still moving at 9 cm/s, and need
+      shifts of up to 19 cm.
 
     ## Choices where the paper is silent
 

@@ -173,6 +173,11 @@ def test_start_posture_from_config(urdf_path):
     torch.testing.assert_close(task.q_start, torch.tensor(q, dtype=F64))
     torch.testing.assert_close(task.start.numpy(), numpy_forward_kinematics(np.array(q)))
     torch.testing.assert_close(task.theta0[:3], task.start)
+    # Without initial_joints: the middle of the limits (0 for the unlimited yaw) as the guess.
+    middle = ViapointTask(**task_arguments(urdf_path, initial_joints=None))
+    assert middle.kinematics.middle_posture().tolist() == pytest.approx([0.0, 0.0, 1.3, 0.0])
+    reached = middle.kinematics.forward_kinematics(middle.q_start[None])[0]
+    assert float((reached - middle.start).norm()) < 1e-4
     with pytest.raises(ValueError, match="outside the joint limits"):
         ViapointTask(**task_arguments(urdf_path, start=None, initial_joints=[0, 0.6, -1, 0.3]))
 

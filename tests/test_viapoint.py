@@ -85,16 +85,17 @@ def test_every_route_is_reachable_and_recognised(task):
 
 
 def test_paths_end_at_the_target(task):
-    """The fixed final DS-GMR component: every exact route ends within 2 mm of the target,
-    almost at rest; with the three learned attractors alone (the previous task: 2.4 s, no
-    target component) the same routes end ~10 cm short, near the last viapoint."""
+    """The fixed final DS-GMR component: every exact route ends within 2.5 mm of the target
+    (measured 1.9 mm), almost at rest; with the three learned attractors alone (the previous
+    task: 2.4 s, no target component) the same routes end ~10 cm short, near the last
+    viapoint."""
     assert task.end_at_target and task.dynamics.goal_time == pytest.approx(2.4)
     assert task.dynamics.time_centres.tolist() == pytest.approx([0.0, 0.8, 1.6, 2.4])
     thetas, _ = route_policies(task)
     path = task.trajectory(thetas)
     assert bool((task.reward(path) >= 0.99).all())
     ends = task.end_point_error(path)
-    assert float(ends.max()) < 2e-3, ends
+    assert float(ends.max()) < 2.5e-3, ends
     speed = (path[:, -1] - path[:, -2]).norm(dim=-1) / task.dynamics.dt
     assert float(speed.max()) < 0.02  # m/s
     old = ViapointTask(dtype=F64, end_at_target=False, duration=2.4)
