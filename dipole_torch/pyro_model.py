@@ -162,6 +162,22 @@ def dp_mixture_model(
     Returns:
         labels ``[B, N]``, slot means ``[B, N, D]``, slot covariances ``[B, N, D, D]``
         (Σ + R, as the sampler stores them) and y ``[B, N, D]``.
+
+    Example:
+        >>> import pyro.poutine as poutine
+        >>> from dipole_torch import NormalInverseWishartPrior
+        >>> prior = NormalInverseWishartPrior.from_exploration(
+        ...     torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+        >>> pyro.set_rng_seed(0)
+        >>> labels, means, covariances, y = dp_mixture_model(prior, 1.0, 5, num_draws=1000)
+        >>> labels.shape, y.shape
+        (torch.Size([1000, 5]), torch.Size([1000, 5, 2]))
+        >>> forward = poutine.trace(dp_mixture_model).get_trace(prior, 1.0, 5)
+        >>> state, y = state_from_trace(forward, prior), forward.nodes["y"]["value"]
+        >>> scored = poutine.trace(poutine.condition(dp_mixture_model, state_sites(state, y)))
+        >>> log_joint = scored.get_trace(prior, 1.0, data=y).log_prob_sum()
+        >>> bool(torch.isclose(log_joint, dp_log_joint(y, state, 1.0)))
+        True
     """
     if not alpha > 0:
         raise ValueError(f"alpha must be positive, got {alpha}")
