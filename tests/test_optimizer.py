@@ -225,6 +225,59 @@ def test_long_successful_run_retires_converged_policies_and_keeps_going():
     assert asked.shape[0] >= int(opt.active.sum())
 
 
+def test_a_run_without_scouts_restarts_when_every_policy_has_retired():
+    # explore=0 (no scouts): once every policy has converged and retired, the next ask is a
+    # restart of n0 draws from N(θ0, Σ_start), never an empty batch (which ended the run).
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+        explore=0.0,
+        retire_std=0.05,
+        generator=torch.Generator().manual_seed(1),
+    )
+    restarts = 0
+    while opt.trials < 1500:
+        retired_all = opt.started and not bool(opt.active.any())
+        theta = opt.ask()
+        assert theta.shape[0] > 0
+        if retired_all:
+            restarts += 1
+            assert int((opt.asked_owner == -1).sum()) == opt.n0  # (and any probes)
+        opt.tell(theta, two_optima(theta))
+    assert restarts >= 1
+
+
+def test_new_policies_explore_with_the_shape_of_sigma_start():
+    # The default variant starts each policy at Σ_start's shape, scaled to its component's
+    # spread (a few points in 10-D give a badly conditioned posterior covariance); the
+    # paper's variant keeps the posterior covariance itself.
+    d = 10
+    sigma_start = torch.diag(torch.linspace(0.5, 2.0, d, dtype=F64))
+    for paper in (False, True):
+        build = Dipole.paper if paper else Dipole
+        extra = {"reward_range": (-1e4, 0.0)} if paper else {}
+        opt = build(
+            torch.zeros(d, dtype=F64),
+            sigma_start,
+            generator=torch.Generator().manual_seed(0),
+            **extra,
+        )
+        theta = opt.ask()
+        opt.tell(theta, two_optima(theta))
+        ratio = opt.policy_covariances / sigma_start  # elementwise: off-diagonals are 0/0
+        diag = ratio.diagonal(dim1=-2, dim2=-1)  # [K, D]
+        condition = torch.linalg.cond(opt.policy_covariances)
+        if paper:
+            assert (condition > 5 * torch.linalg.cond(sigma_start)).all()
+        else:
+            assert torch.allclose(diag, diag[:, :1].expand_as(diag))
+            assert (diag <= 1.0 + 1e-12).all()
+            off = opt.policy_covariances - torch.diag_embed(
+                opt.policy_covariances.diagonal(dim1=-2, dim2=-1)
+            )
+            assert off.abs().max() < 1e-12
+
+
 def test_paper_variant_is_reachable():
     task = MultimodalTask()
     opt = Dipole.paper(
