@@ -202,6 +202,7 @@ def neal8_sweep(
     initial_prior: NormalInverseWishartPrior | None = None,
     update_prior: bool = True,
     exact_covariance: bool = True,
+    reuse_auxiliary: bool = False,
 ) -> DPMixtureState:
     """One Gibbs sweep of Neal's Algorithm 8 (the paper's Algorithm 1, eqs. 5 and 6).
 
@@ -240,6 +241,11 @@ def neal8_sweep(
         update_prior: redraw H's hyperparameters after the sweep (step 3).
         exact_covariance: correct the Σ step for the regularisation (see
             :func:`resample_parameters`).
+        reuse_auxiliary: instead of Algorithm 8's m fresh auxiliary draws per point, keep
+            one set of m for the sweep and redraw only the slot a point takes (the "ReUse"
+            sampler of Favaro & Teh 2013, also exact; a removed singleton's parameters
+            replace a uniformly chosen slot). m + (components opened) draws a sweep instead
+            of N·m. CPU only (:func:`_label_pass_reuse`).
 
     Returns:
         The new state (contiguous labels, occupied components only).
@@ -270,11 +276,30 @@ def neal8_sweep(
             aux_log_r = reward_weights(current, means, weights=weights)
         return _Auxiliary(means, covs, tril, aux_log_r, log_aux_prior + aux_log_r + log_lik)
 
-    chunk = _chunk_size(n, m, d)
-    label_pass = _label_pass_numpy if y.device.type == "cpu" else _label_pass_sync_free
-    labels, all_means, all_covs, counts = label_pass(
-        y, state, log_r, auxiliary, uniforms, log_aux_prior, chunk
-    )
+    if reuse_auxiliary:
+        if y.device.type != "cpu":
+            raise ValueError("reuse_auxiliary=True runs on CPU only")
+        slot_uniforms = _uniforms(n, generator, y.device)
+
+        def fresh(count: int) -> _Auxiliary:
+            """``count`` draws from H with their scores at every point: ``[N, count]``."""
+            means, covs = prior.sample(count, generator)
+            tril = torch.linalg.cholesky(covs)
+            aux_log_r = torch.zeros(count, dtype=DTYPE)
+            if reward_weighted:
+                aux_log_r = reward_weights(current, means, weights=weights)
+            log_lik = _log_prob_tril(y[:, None, :], means, tril)
+            return _Auxiliary(means, covs, tril, aux_log_r, log_aux_prior + aux_log_r + log_lik)
+
+        labels, all_means, all_covs, counts = _label_pass_reuse(
+            y, state, log_r, fresh, uniforms, slot_uniforms, log_aux_prior, m
+        )
+    else:
+        chunk = _chunk_size(n, m, d)
+        label_pass = _label_pass_numpy if y.device.type == "cpu" else _label_pass_sync_free
+        labels, all_means, all_covs, counts = label_pass(
+            y, state, log_r, auxiliary, uniforms, log_aux_prior, chunk
+        )
     occupied = counts > 0
     remap = torch.cumsum(occupied.long(), 0) - 1
     labels = remap[labels]
@@ -372,6 +397,7 @@ def fit_dp_mixture(
     init: str = "single",
     update_prior: bool = True,
     exact_covariance: bool = True,
+    reuse_auxiliary: bool = False,
 ) -> DPMixtureState:
     """Run ``num_sweeps`` Gibbs sweeps and return the last state.
 
@@ -392,6 +418,8 @@ def fit_dp_mixture(
         exact_covariance: Metropolis-Hastings correction of the Σ step for the
             regularisation (:func:`resample_parameters`); ``False`` restores the heuristic
             "conjugate draw + R".
+        reuse_auxiliary: Favaro & Teh's re-used auxiliary draws instead of Algorithm 8's
+            fresh ones (:func:`neal8_sweep`); CPU only.
     """
     check_matrix_shape(y, (-1, prior.dim), "y")
     check_finite(y, "y")
@@ -424,6 +452,7 @@ def fit_dp_mixture(
             initial_prior=prior,
             update_prior=update_prior,
             exact_covariance=exact_covariance,
+            reuse_auxiliary=reuse_auxiliary,
         )
     return state
 
@@ -683,6 +712,95 @@ def _label_pass_numpy(
     means, covs = _slot_parameters(state, opened, k)
     counts_t = torch.tensor(counts, dtype=DTYPE)
     return torch.tensor(labels, dtype=torch.long), means, covs, counts_t
+
+
+def _label_pass_reuse(
+    y: Tensor,
+    state: DPMixtureState,
+    log_r: Tensor,
+    fresh,
+    uniforms: Tensor,
+    slot_uniforms: Tensor,
+    log_aux_prior: float,
+    m: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Step 1 of :func:`neal8_sweep` with re-used auxiliary components (Favaro & Teh 2013).
+
+    One set of m draws from H serves the whole sweep. At point i: if i was alone in its
+    component, that component's parameters replace the auxiliary slot chosen by
+    ``slot_uniforms[i]``; i then joins a component ∝ r_c n_{-i,c} N(y_i; θ_c) or a slot j
+    ∝ r_j (α/m) N(y_i; φ_j); a slot taken becomes a component and is refilled from H. Same
+    arguments and returns as :func:`_label_pass_numpy`, but ``fresh(count) -> _Auxiliary``
+    gives ``[count]`` draws with ``score [N, count]`` at every point.
+    """
+    n, k = y.shape[0], state.num_components
+    labels = state.labels.tolist()
+    counts = torch.bincount(state.labels, minlength=k).tolist()
+    capacity = max(2 * k, 8)
+    score = np.full((n, capacity), -math.inf)
+    starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
+    score[:, :k] = starting.numpy()
+    log_counts = np.full(capacity, -math.inf)
+    log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    logits = np.empty(capacity + m)
+    u, slot_u = uniforms.tolist(), slot_uniforms.tolist()
+    aux = fresh(m)
+    slots = [(aux.means[j], aux.covs[j], aux.tril[j], float(aux.log_r[j])) for j in range(m)]
+    aux_score = aux.score.numpy().copy()  # [N, m], rows > i kept current
+    opened: dict[int, tuple[Tensor, Tensor, Tensor, float]] = {}
+
+    def parameters(slot: int) -> tuple[Tensor, Tensor, Tensor, float]:
+        if slot in opened:
+            return opened[slot]
+        cov = state.covariances[slot]
+        return state.means[slot], cov, torch.linalg.cholesky(cov), float(log_r[slot])
+
+    for i in range(n):
+        c = labels[i]
+        counts[c] -= 1
+        singleton = counts[c] == 0
+        log_counts[c] = math.log(counts[c]) if counts[c] else -math.inf
+        own = -1
+        if singleton:  # its parameters become an empty component: a uniform slot
+            own = min(int(slot_u[i] * m), m - 1)
+            slots[own] = parameters(c)
+            aux_score[i:, own] = log_aux_prior + score[i:, c]
+        np.add(log_counts[:k], score[i, :k], out=logits[:k])
+        logits[k : k + m] = aux_score[i]
+        choice = draw_categorical_numpy(logits[: k + m], u[i])
+        if choice < k:
+            new = choice
+        else:
+            j = choice - k
+            if j == own:
+                new = c  # re-formed with its own parameters
+            else:
+                new = c if singleton else _free_slot(counts, k)
+                if new == k:
+                    k += 1
+                    counts.append(0)
+                    if k > capacity:
+                        capacity *= 2
+                        score = _grow(score, capacity)
+                        log_counts = np.concatenate((log_counts, np.full(k - 1, -math.inf)))
+                        logits = np.empty(capacity + m)
+                mean, cov, tril, lr = opened[new] = slots[j]
+                if i + 1 < n:
+                    score[i + 1 :, new] = (_log_prob_tril(y[i + 1 :], mean, tril) + lr).numpy()
+            # The slot taken is refilled from H; its scores are needed at later points only.
+            refill = fresh(1)
+            slots[j] = (refill.means[0], refill.covs[0], refill.tril[0], float(refill.log_r[0]))
+            aux_score[i + 1 :, j] = refill.score[i + 1 :, 0].numpy()
+        labels[i] = new
+        counts[new] += 1
+        log_counts[new] = math.log(counts[new])
+    means, covs = _slot_parameters(state, opened, k)
+    return (
+        torch.tensor(labels, dtype=torch.long),
+        means,
+        covs,
+        torch.tensor(counts, dtype=DTYPE),
+    )
 
 
 def _label_pass_sync_free(

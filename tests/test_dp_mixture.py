@@ -404,3 +404,29 @@ def test_cuda_label_loop_never_syncs_within_a_chunk(monkeypatch):
     g = torch.Generator(device="cuda").manual_seed(0)
     out = neal8_sweep(y, state, reward_weighted=True, generator=g, update_prior=False)
     assert out.labels.device.type == "cuda" and int(out.counts.sum()) == 60
+
+
+def test_reuse_draws_m_auxiliary_components_a_sweep_and_recovers_clusters(monkeypatch):
+    # Favaro & Teh's re-use: one set of m draws from H, plus one per slot taken (a component
+    # opened or a singleton re-formed), instead of N·m; its exactness is checked against the
+    # enumerated posterior in tests/test_dp_exact.py.
+    sizes = []
+    original = NormalInverseWishartPrior.sample
+
+    def spy(self, n, *args, **kwargs):
+        sizes.append(n)
+        return original(self, n, *args, **kwargs)
+
+    g = torch.Generator().manual_seed(2)
+    true = torch.arange(3).repeat_interleave(80)
+    y = separated_centres(3, 2, g)[true] + torch.randn(240, 2, generator=g, dtype=F64)
+    prior = clustering_prior(y)
+    state = DPMixtureState.single_component(y, prior)
+    monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
+    state = neal8_sweep(y, state, generator=g, update_prior=False, reuse_auxiliary=True)
+    assert sizes[0] == 10 and set(sizes[1:]) <= {1} and len(sizes) < 240
+    state = fit_dp_mixture(
+        y, prior, 15, generator=g, init="sequential", update_prior=False, reuse_auxiliary=True
+    )
+    assert int((state.counts >= 0.05 * len(y)).sum()) == 3
+    assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
