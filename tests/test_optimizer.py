@@ -353,3 +353,23 @@ def test_a_numerically_failed_clustering_does_not_stop_the_run(monkeypatch, pape
     learn(opt, lambda t: -(t - 0.5).pow(2).sum(-1), 200)
     assert opt.clusterings_skipped > 1 and opt.num_policies == 1
     assert opt.best()[1] > -0.05
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("build", [Dipole, Dipole.paper, Power])
+def test_optimizers_run_on_cuda(build):
+    # A long enough run on the GPU to cluster, retire and probe: draws, clustering and
+    # state all stay on the device, and a checkpoint round-trips there.
+    device = torch.device("cuda")
+    extra = {"reward_range": (-1e4, 0.0)} if build is not Dipole else {}
+    opt = build(
+        torch.zeros(2, dtype=F64, device=device),
+        torch.eye(2, dtype=F64, device=device),
+        generator=torch.Generator(device).manual_seed(0),
+        **extra,
+    )
+    learn(opt, two_optima, 400)
+    assert opt.policy_means.device.type == "cuda" and opt.ask().device.type == "cuda"
+    state = opt.state_dict()
+    opt.load_state_dict(state)
+    assert opt.best()[1] > -1.0
