@@ -225,8 +225,9 @@ def neal8_sweep(
     ``[chunk, m, D, D]`` covariances, so memory does not grow with N·m), and a component
     opened at point i gets its likelihood column only for the points after i. The loop itself
     does O(K + m) work per point: on CPU in numpy (:func:`_label_pass_numpy`), on other
-    devices with tensor ops that never wait for the device (:func:`_label_pass_sync_free`).
-    Both make the same draws from the same uniforms.
+    devices with tensor ops that never wait for the device within a chunk of points (one
+    sync a chunk; :func:`_label_pass_sync_free`). Both make the same draws from the same
+    uniforms.
 
     Args:
         y: ``[N, D]`` data (for DIPOLE, ``[θ, r]`` with the positive reward weight last).
@@ -244,8 +245,8 @@ def neal8_sweep(
         reuse_auxiliary: instead of Algorithm 8's m fresh auxiliary draws per point, keep
             one set of m for the sweep and redraw only the slot a point takes (the "ReUse"
             sampler of Favaro & Teh 2013, also exact; a removed singleton's parameters
-            replace a uniformly chosen slot). m + (components opened) draws a sweep instead
-            of N·m. CPU only (:func:`_label_pass_reuse`).
+            replace a uniformly chosen slot). m + (slots taken) draws a sweep instead of
+            N·m. CPU only (:func:`_label_pass_reuse`).
 
     Returns:
         The new state (contiguous labels, occupied components only).
