@@ -13,7 +13,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 from torch import Tensor
-from torch.distributions import MultivariateNormal
 
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.prior import NormalInverseWishartPrior
@@ -582,19 +581,34 @@ def _uniforms(n: int, generator: torch.Generator | None, device: torch.device) -
 
 
 def _gaussian_log_prob(value: Tensor, means: Tensor, covariances: Tensor) -> Tensor:
-    return MultivariateNormal(means, covariance_matrix=covariances, validate_args=False).log_prob(
-        value
-    )
+    """``[...]`` log N(value; means, covariances), broadcast (no distribution object: its
+    construction cost more than the maths at DIPOLE's sizes)."""
+    return _log_prob_tril(value, means, torch.linalg.cholesky(covariances))
 
 
 def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
-    """``[...]`` log N(value; mean, L Lᵀ) from the Cholesky factor ``tril: [..., D, D]``
-    (``value``, ``mean``: ``[..., D]``; all broadcast)."""
-    diff = (value - mean).unsqueeze(-1)
-    tril = tril.expand(*diff.shape[:-2], *tril.shape[-2:])
-    z = torch.linalg.solve_triangular(tril, diff, upper=False).squeeze(-1)
+    """``[*lead, *batch]`` log N(value; mean, L Lᵀ) from the Cholesky factors
+    ``tril: [*batch, D, D]``, for ``value - mean: [*lead, *batch, D]`` (broadcast).
+
+    The leading dims go into the columns of one triangular solve per factor, so the factors
+    are never copied per point (an expanded ``[N, K, D, D]`` would take gigabytes).
+    """
+    diff = value - mean
+    d = diff.shape[-1]
+    nb = tril.dim() - 2
+    if diff.dim() - 1 < nb:
+        diff = diff.expand(*tril.shape[:-2], d)
+    lead = diff.shape[: diff.dim() - 1 - nb]
+    inner = tuple(
+        b if a == 1 else a for a, b in zip(diff.shape[len(lead) : -1], tril.shape[:-2], strict=True)
+    )
+    tril = tril.expand(*inner, d, d)
+    size = math.prod(lead)
+    rhs = diff.expand(*lead, *inner, d).reshape(size, *inner, d).movedim(0, -1)
+    z = torch.linalg.solve_triangular(tril, rhs, upper=False)  # [*inner, D, size]
+    mahalanobis = z.square().sum(-2).movedim(-1, 0).reshape(*lead, *inner)
     log_det = tril.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    return -0.5 * (z.square().sum(-1) + tril.shape[-1] * _LOG_2PI) - log_det
+    return -0.5 * (mahalanobis + d * _LOG_2PI) - log_det
 
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -1022,10 +1036,12 @@ def _regularisation_log_weight(
     Exactly 0 for R = 0 (both terms come from identical matrices); −inf where Σ is not
     positive definite.
     """
-    valid = torch.linalg.cholesky_ex(covs)[1] == 0
+    chol, info = torch.linalg.cholesky_ex(covs)
+    valid = info == 0
     eye = torch.eye(covs.shape[-1], dtype=covs.dtype, device=covs.device)
-    covs = torch.where(valid[:, None, None], covs, eye)  # placeholders, masked out below
-    chol = torch.linalg.cholesky(covs)
+    # Placeholders where Σ is not positive definite, masked out below.
+    chol = torch.where(valid[:, None, None], chol, eye)
+    covs = torch.where(valid[:, None, None], covs, eye)
     chol_reg = torch.linalg.cholesky(covs + regularization)
 
     def log_lik(factor: Tensor) -> Tensor:  # Σ_i log N(y_i; μ, L Lᵀ) up to −½ n D log 2π

@@ -430,3 +430,24 @@ def test_reuse_draws_m_auxiliary_components_a_sweep_and_recovers_clusters(monkey
     )
     assert int((state.counts >= 0.05 * len(y)).sum()) == 3
     assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
+
+
+@pytest.mark.parametrize(
+    "value, mean, batch",
+    [
+        ((7, 1, 3), (4, 3), (4,)),  # points against K components: [N, K]
+        ((5, 4, 3), (5, 4, 3), (5, 4)),  # one factor per point and slot: [C, m]
+        ((6, 3), (3,), ()),  # one component, all points: [N]
+        ((2, 5, 4, 3), (4, 3), (4,)),  # GMR queries [C, m] against K components
+    ],
+)
+def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
+    # The sweep's density from Cholesky factors, solved with the points as columns (no
+    # per-point copy of the factors), against torch.distributions.
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(*batch, 3, 3, generator=g, dtype=F64)
+    tril = torch.linalg.cholesky(a @ a.transpose(-1, -2) + torch.eye(3, dtype=F64))
+    v = torch.randn(value, generator=g, dtype=F64)
+    mu = torch.randn(mean, generator=g, dtype=F64)
+    expected = torch.distributions.MultivariateNormal(mu, scale_tril=tril).log_prob(v)
+    torch.testing.assert_close(dp_mixture._log_prob_tril(v, mu, tril), expected)
