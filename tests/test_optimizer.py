@@ -373,3 +373,83 @@ def test_optimizers_run_on_cuda(build):
     state = opt.state_dict()
     opt.load_state_dict(state)
     assert opt.best()[1] > -1.0
+
+
+def test_a_retired_policy_short_of_the_top_is_replaced_by_a_better_candidate():
+    # One hill, f(θ) = −θ². A policy retired at θ = 2 (its samples straddled, say) claims a
+    # top; a candidate on the same hill with a better sample (θ = 1) refutes it: the probe
+    # midpoint shows no valley, yet the candidate becomes a policy and the retired one goes.
+    # (Before, the candidate was dropped and the retired policy blocked its hill for good.)
+    def hill(theta):
+        return -theta.double().pow(2).sum(-1)
+
+    opt = Dipole(
+        torch.zeros(1, dtype=F64),
+        torch.eye(1, dtype=F64),
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, hill(theta))
+    one = torch.ones(1, 1, dtype=F64)
+    opt.policy_means, opt.policy_covariances = 2.0 * one, 1e-8 * one[None]
+    opt.active = torch.zeros(1, dtype=torch.bool)
+    opt.success, opt.paths = opt.success[:1], opt.paths[:1]
+    opt.thetas, opt.rewards = 2.0 * one, torch.tensor([-4.0], dtype=F64)
+    opt.owner = torch.zeros(1, dtype=torch.long)
+    opt._add_candidates([(one[0], 0.1 * one, one[0], torch.tensor(-1.0, dtype=F64))])
+    opt._probe_candidates()
+    probe = opt.candidate_probes
+    assert torch.allclose(probe, torch.tensor([[1.5]], dtype=F64))
+    opt.probe_rewards = hill(probe)  # -2.25: no valley between θ = 1 and θ = 2
+    opt._judge_candidates()
+    assert opt.num_policies == 1 and bool(opt.active[0])
+    assert torch.allclose(opt.policy_means, one)
+
+
+def test_each_policy_weighs_its_samples_by_its_own_returns():
+    # Per-policy importance sets take eq. 7's weights from the policy's own M returns
+    # (best 1, worst the floor): a scout's or another policy's return never moves a policy.
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, two_optima(theta))
+    from dipole_torch.power import importance_sets
+
+    _, index, valid = importance_sets(opt.owner, opt.rewards, opt.num_policies, opt.M)
+    before = opt._slot_weights(index, valid)
+    filled = valid.sum(-1) > 1
+    assert torch.allclose(before[filled, 0], torch.ones_like(before[filled, 0]))
+    assert torch.allclose(before[valid].min(), torch.tensor(opt.reward_scale.floor, dtype=F64))
+    # A far worse return elsewhere (a scout's) changes nothing.
+    opt.thetas = torch.cat((opt.thetas, torch.zeros(1, 2, dtype=F64)))
+    opt.rewards = torch.cat((opt.rewards, torch.tensor([-1e9], dtype=F64)))
+    opt.owner = torch.cat((opt.owner, torch.tensor([-1])))
+    assert torch.equal(opt._slot_weights(index, valid), before)
+
+
+def test_a_policy_whose_samples_straddle_two_hills_restarts_from_its_best():
+    # Kept samples on both optima of two_optima, the mean between them (in the valley) and
+    # a shrunken exploration: such a policy would retire in the valley. It restarts from
+    # its best sample with Σ_start's shape at its samples' spread, and keeps only the
+    # samples near its new mean.
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, two_optima(theta))
+    thetas = torch.tensor([[1.0, 1.0], [1.01, 1.0], [-1.0, -0.98], [-1.02, -1.0]], dtype=F64)
+    opt.thetas, opt.rewards = thetas, two_optima(thetas)
+    opt.owner = torch.zeros(4, dtype=torch.long)
+    opt.policy_means = torch.zeros(1, 2, dtype=F64)
+    opt.policy_covariances = 1e-6 * torch.eye(2, dtype=F64)[None]
+    opt.active = torch.ones(1, dtype=torch.bool)
+    opt.success, opt.paths = opt.success[:1], opt.paths[:1]
+    opt._recentre_straddlers()
+    assert torch.equal(opt.policy_means[0], thetas[0])
+    assert float(opt.policy_covariances[0, 0, 0]) > 0.1
+    assert opt.thetas.shape[0] == 2 and (opt.thetas[:, 0] > 0).all()
