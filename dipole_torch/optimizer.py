@@ -1171,8 +1171,9 @@ class Dipole(PolicySearch):
         from both): eq. 7 puts the mean between them, in a valley, where no new sample beats
         the kept ones, and the success rule shrinks the exploration until the policy retires
         short of any top (seen on 2-D landscapes: means at 41 % of the height with the best
-        sample at 98 %, 368 stds away). The policy keeps the samples within that distance of
-        its new mean and explores with Σ_start's shape at their spread."""
+        sample at 98 %, 368 stds away). The policy keeps its best sample only, as a new
+        policy would, and explores with Σ_start's shape at its old samples' spread around
+        it."""
         if self.exploration != "success" or self.num_policies == 0:
             return
         best = self._policy_best_samples()
@@ -1191,17 +1192,14 @@ class Dipole(PolicySearch):
             own = (self.owner == j).nonzero().squeeze(-1)
             centre = best[j]
             diff = self.thetas[own] - centre
-            z = torch.linalg.solve_triangular(chol[j], diff.T, upper=False).T
-            far = z.norm(dim=-1) > limit
-            # Σ_start's shape at the spread of the policy's samples around its best one.
             scatter = diff.T @ diff / max(own.numel() - 1, 1)
             self.policy_means[j] = centre
             self.policy_covariances[j] = self._starting_exploration(scatter)
             self.success[j] = self.TARGET_SUCCESS
             self.paths[j] = 0.0
             keep = torch.ones_like(self.owner, dtype=torch.bool)
-            keep[own[far]] = False
-            keep[own[diff.norm(dim=-1) == 0]] = True  # the best sample itself
+            keep[own] = False
+            keep[own[self.rewards[own].argmax()]] = True
             self._keep(keep)
 
     def _retire_and_merge(self) -> None:
