@@ -669,7 +669,8 @@ def _label_pass_numpy(
     starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
     score[:, :k] = starting.numpy()
     log_counts = np.full(capacity, -math.inf)
-    log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
+        log_counts[:k] = np.log(np.asarray(counts, dtype=float))
     logits = np.empty(0)  # reused buffer for one point's K + m logits
     u = uniforms.tolist()
     opened: dict[int, tuple[Tensor, Tensor, Tensor, float]] = {}  # slot -> μ, Σ, L, log r
@@ -756,7 +757,8 @@ def _label_pass_reuse(
     starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
     score[:, :k] = starting.numpy()
     log_counts = np.full(capacity, -math.inf)
-    log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
+        log_counts[:k] = np.log(np.asarray(counts, dtype=float))
     logits = np.empty(capacity + m)
     u, slot_u = uniforms.tolist(), slot_uniforms.tolist()
     aux = fresh(m)
