@@ -496,7 +496,8 @@ class Dipole(PolicySearch):
 
     * With ``importance="global"`` a policy on an optimum as good as the others' disappears
       as soon as its latest samples are a little worse than theirs; per-policy importance
-      sets keep every optimum found.
+      sets keep every optimum found. Eq. 7 then weighs each policy's M samples by the
+      min–max of its own returns (see :meth:`_slot_weights`).
     * With ``exploration="clustering"`` a component's covariance is the posterior mean
       (Ψ0 + S)/(ν0 + n − p − 1) of a handful of points: Ψ0 keeps it near Σ_start and the
       policies never converge. ``"success"`` keeps a policy's covariance from clustering to
@@ -506,8 +507,10 @@ class Dipole(PolicySearch):
       smoothing 1/12, damping d = 1 + D/2), and adds that method's rank-one update along
       the evolution path of its successful steps (c_c = 2/(D + 2), c_cov = 2/(D² + 6)), so
       the covariance learns the optimum's shape. Exploration then shrinks geometrically near
-      an optimum and grows on a slope (never beyond Σ_start). A new component starts from
-      the DP posterior covariance.
+      an optimum and grows on a slope (never beyond Σ_start). A new policy starts with
+      Σ_start's shape at its component's spread (:meth:`_starting_exploration`), and a
+      policy whose best sample lies far outside its exploration restarts from that sample
+      (:meth:`_recentre_straddlers`).
     * Scouts let the clustering find optima after the first n0 samples: a scout that the
       DP puts in a component of its own is a candidate. With ``hill_valley`` the midpoint
       between its best sample and the nearest policy's best sample is evaluated at the next
