@@ -1,0 +1,294 @@
+"""Figure-1-style curves from a ``python train.py -m`` sweep, on any Hydra launcher.
+
+Reads every run under one or more multirun directories (a run directory holds
+``.hydra/config.yaml``, written when the run starts, and ``results.json``, written atomically
+when it ends), groups the runs by task and algorithm, and draws per task the paper's two
+panels -- best policy and average of policies, mean ± std over seeds against trials -- with
+``benchmarks/lockstep.py``'s helpers, the same as ``reproduce_figure1.py``::
+
+    python train.py -m hydra/launcher=joblib task=cartpole algo=dipole,power seed='range(0,50)'
+    python benchmarks/aggregate.py multirun/2026-11-26_07-30-00 --out figures/cartpole
+
+Per run, the curves are its ``results.json`` history: after every tell, the highest
+(``best``) and the mean (``mean``) return of the batch just evaluated, as step functions of
+the number of trials sampled on a common grid (``--grid-step`` trials apart, up to the
+smallest trial budget of the task's runs; grid points before some run's first tell are
+dropped). PoWER evaluates one policy per iteration, so its two curves coincide.
+
+Runs of one task and algorithm whose configs differ in more than the seed (a hyperparameter
+sweep such as ``algo.optimizer.exploration_decay=1.0,0.98``) are separate curves, labelled
+with the keys that differ. Settings that do not change a run's numbers (``progress``,
+``threads``, ``checkpoint_every``, ``figure_every``, ``resume``) are ignored.
+
+Writes ``<out>/<task>.png`` per task and ``<out>/aggregate.json``: per task the trials grid
+and, per curve, its seeds, run directories, and the mean and std over seeds of ``best``,
+``average`` and ``best_so_far`` on the grid, and the final values. A run directory without
+``results.json`` (still running, failed or killed) is an error unless ``--allow-incomplete``,
+which leaves it out and lists it in the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from lockstep import on_grid, plot_best_and_average
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from dipole_torch.checkpoint import flatten
+
+# Config keys that do not change a run's numbers (train.py's RESUME_MAY_CHANGE, less the
+# budget and the device).
+IGNORED = ("seed", "progress", "threads", "checkpoint_every", "figure_every", "resume")
+TASK_TITLES = {
+    "cartpole": "Cart-pole",
+    "mountain_car": "Mountain car",
+    "multimodal": "Multimodal toy",
+    "viapoint": "WAM viapoint",
+}
+ALGO_LABELS = {"dipole": "DIPOLE", "dipole_paper": "DIPOLE (paper)", "power": "PoWER"}
+ALGO_COLORS = {"dipole": "tab:blue", "dipole_paper": "tab:cyan", "power": "tab:red"}
+MORE_COLORS = ("tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
+HISTORY_KEYS = ("trials", "best", "mean", "best_so_far", "num_policies")
+
+
+class AggregateError(ValueError):
+    """A multirun directory that cannot be aggregated; the message says why and where."""
+
+
+@dataclass
+class Run:
+    directory: Path
+    task: str
+    algo: str
+    seed: int
+    budget: int  # the config's trial budget
+    settings: dict  # the flattened, resolved config, less IGNORED
+    history: np.ndarray  # rows [trials, best, mean, best_so_far, num_policies]
+
+
+def find_run_dirs(root: Path) -> list[Path]:
+    """Every directory under ``root`` (``root`` included) holding ``.hydra/config.yaml``."""
+    if not root.exists():
+        raise AggregateError(f"{root} does not exist")
+    if not root.is_dir():
+        raise AggregateError(
+            f"{root} is a file; give the multirun directory (the 'sweep output dir' that "
+            "`python train.py -m` prints)"
+        )
+    return sorted(p.parent.parent for p in root.rglob("config.yaml") if p.parent.name == ".hydra")
+
+
+def load_run(directory: Path) -> Run | None:
+    """The run in ``directory``, or None when it has no ``results.json`` yet."""
+    config_path = directory / ".hydra" / "config.yaml"
+    results_path = directory / "results.json"
+    try:
+        config = OmegaConf.to_container(OmegaConf.load(config_path), resolve=True)
+    except (OSError, OmegaConfBaseException) as error:
+        raise AggregateError(f"cannot read {config_path}: {error}") from None
+    if not isinstance(config, dict) or not {"task", "algo", "seed", "trials"} <= set(config):
+        raise AggregateError(
+            f"{config_path} is not a train.py config (it needs task, algo, seed and trials)"
+        )
+    if not results_path.exists():
+        return None
+    try:
+        results = json.loads(results_path.read_text())
+        history = np.array([results["history"][key] for key in HISTORY_KEYS], dtype=float).T
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise AggregateError(
+            f"{results_path} is not a train.py results.json with a learning history "
+            f"({type(error).__name__}: {error})"
+        ) from None
+    if history.ndim != 2 or len(history) == 0:
+        raise AggregateError(f"{results_path} has an empty learning history")
+    if np.any(np.diff(history[:, 0]) <= 0):
+        raise AggregateError(f"{results_path}: history.trials is not increasing")
+    task, algo = config["task"]["name"], config["algo"]["name"]
+    for key, expected in (("task", task), ("algo", algo), ("seed", config["seed"])):
+        if results.get(key) != expected:
+            raise AggregateError(
+                f"{results_path} says {key}={results.get(key)!r} but {config_path} says "
+                f"{expected!r}: the directory mixes two runs"
+            )
+    settings = {
+        key: value
+        for key, value in flatten(config).items()
+        if not any(key == skip or key.startswith(f"{skip}.") for skip in IGNORED)
+    }
+    return Run(directory, task, algo, int(config["seed"]), int(config["trials"]), settings, history)
+
+
+def load_runs(roots: list[Path], allow_incomplete: bool) -> tuple[list[Run], list[Path]]:
+    """All finished runs under ``roots`` and the run directories without results."""
+    runs, incomplete = [], []
+    for root in roots:
+        directories = find_run_dirs(root)
+        if not directories:
+            raise AggregateError(
+                f"no train.py runs under {root}: a run directory holds .hydra/config.yaml and "
+                "results.json. Give the multirun directory that `python train.py -m` prints "
+                "('sweep output dir'), e.g. multirun/<date_time>"
+            )
+        for directory in directories:
+            run = load_run(directory)
+            if run is None:
+                incomplete.append(directory)
+            else:
+                runs.append(run)
+    if incomplete and not allow_incomplete:
+        shown = ", ".join(str(d) for d in incomplete[:5])
+        more = f" and {len(incomplete) - 5} more" if len(incomplete) > 5 else ""
+        raise AggregateError(
+            f"{len(incomplete)} run(s) have no results.json (still running, failed or killed): "
+            f"{shown}{more}. Finish them (resume=<dir>/checkpoint.pt) or pass "
+            "--allow-incomplete to leave them out"
+        )
+    if not runs:
+        raise AggregateError(
+            f"none of the {len(incomplete)} run(s) under {', '.join(map(str, roots))} has "
+            "finished (no results.json)"
+        )
+    return runs, incomplete
+
+
+def group_runs(runs: list[Run]) -> dict[str, dict[str, list[Run]]]:
+    """task -> curve label -> runs. One curve per algorithm and per setting that differs
+    between its runs (beside the seed); each seed at most once per curve."""
+    by_algo: dict[tuple[str, str], list[Run]] = defaultdict(list)
+    for run in runs:
+        by_algo[run.task, run.algo].append(run)
+    groups: dict[str, dict[str, list[Run]]] = defaultdict(dict)
+    for (task, algo), members in sorted(by_algo.items()):
+        keys = sorted(set().union(*(run.settings for run in members)))
+        varying = [key for key in keys if len({repr(run.settings.get(key)) for run in members}) > 1]
+        curves: dict[str, list[Run]] = defaultdict(list)
+        for run in members:
+            suffix = ", ".join(f"{key}={run.settings.get(key)}" for key in varying)
+            label = ALGO_LABELS.get(algo, algo) + (f" ({suffix})" if suffix else "")
+            curves[label].append(run)
+        for label, curve in sorted(curves.items()):
+            curve.sort(key=lambda run: run.seed)
+            for a, b in zip(curve, curve[1:], strict=False):
+                if a.seed == b.seed:
+                    raise AggregateError(
+                        f"seed {a.seed} of {label} on {task} appears twice, in {a.directory} "
+                        f"and {b.directory}: the same run would count twice; aggregate "
+                        "one of the two sweeps"
+                    )
+            groups[task][label] = curve
+    return dict(groups)
+
+
+def _curve_stats(values: np.ndarray) -> dict:
+    """``values``: ``[runs, G]`` -> mean and std over runs, rounded."""
+    return {"mean": values.mean(0).round(4).tolist(), "std": values.std(0).round(4).tolist()}
+
+
+def aggregate(roots: list[Path], out: Path, grid_step: int, allow_incomplete: bool) -> dict:
+    runs, incomplete = load_runs(roots, allow_incomplete)
+    groups = group_runs(runs)
+    out.mkdir(parents=True, exist_ok=True)
+    summary: dict = {
+        "sources": [str(root) for root in roots],
+        "incomplete_runs": [str(d) for d in incomplete],
+        "tasks": {},
+    }
+    for task, curves in groups.items():
+        members = [run for curve in curves.values() for run in curve]
+        budget = min(run.budget for run in members)
+        first = max(run.history[0, 0] for run in members)  # every run has told by here
+        grid = np.arange(grid_step, budget + 1, grid_step)
+        grid = grid[grid >= first]
+        if len(grid) == 0:
+            raise AggregateError(
+                f"{task}: no grid point between the runs' first tell ({first:.0f} trials) and "
+                f"the smallest budget ({budget} trials) with --grid-step {grid_step}"
+            )
+        values, entry = {}, {"trials": budget, "trials_grid": grid.tolist(), "curves": {}}
+        for label, curve in curves.items():
+            # on_grid reads columns 1:3: [best, mean], then [best_so_far, num_policies].
+            sampled = np.stack([on_grid(run.history[:, :3], grid) for run in curve])
+            later = np.stack([on_grid(run.history[:, [0, 3, 4]], grid) for run in curve])
+            values[label] = sampled
+            entry["curves"][label] = {
+                "task": task,
+                "algo": curve[0].algo,
+                "settings": curve[0].settings,
+                "runs": len(curve),
+                "seeds": [run.seed for run in curve],
+                "run_dirs": [str(run.directory) for run in curve],
+                "best": _curve_stats(sampled[:, 0]),
+                "average": _curve_stats(sampled[:, 1]),
+                "best_so_far": _curve_stats(later[:, 0]),
+                "num_policies": _curve_stats(later[:, 1]),
+                **{
+                    f"final_{kind}": {
+                        "mean": float(sampled[:, k, -1].mean()),
+                        "std": float(sampled[:, k, -1].std()),
+                    }
+                    for k, kind in enumerate(("best", "average"))
+                },
+            }
+            final = entry["curves"][label]
+            print(
+                f"{task:>12} {label:>30}: {len(curve):3d} runs, at {grid[-1]} trials best "
+                f"{final['final_best']['mean']:.4g} ± {final['final_best']['std']:.3g}, "
+                f"average {final['final_average']['mean']:.4g} ± "
+                f"{final['final_average']['std']:.3g}"
+            )
+        colors, spare = {}, iter(MORE_COLORS * (1 + len(curves) // len(MORE_COLORS)))
+        used = set()
+        for label, curve in curves.items():
+            color = ALGO_COLORS.get(curve[0].algo)
+            colors[label] = color if color and color not in used else next(spare)
+            used.add(colors[label])
+        runs_text = sorted({len(curve) for curve in curves.values()})
+        title = TASK_TITLES.get(task, task)
+        plot_best_and_average(
+            grid,
+            values,
+            colors,
+            out / f"{task}.png",
+            task_title=title,
+            ylabel=f"return (mean ± std over {'/'.join(map(str, runs_text))} runs)",
+            suptitle=f"{title}: {', '.join(curves)}",
+        )
+        entry["figure"] = str(out / f"{task}.png")
+        summary["tasks"][task] = entry
+    path = out / "aggregate.json"
+    path.write_text(json.dumps(summary, indent=1, allow_nan=False))
+    print(f"wrote {out}/<task>.png for {', '.join(groups)} and {path}")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("multirun_dirs", nargs="+", type=Path, metavar="MULTIRUN_DIR")
+    parser.add_argument("--out", type=Path, required=True, help="directory for PNGs and JSON")
+    parser.add_argument("--grid-step", type=int, default=10, help="trials between grid points")
+    parser.add_argument(
+        "--allow-incomplete",
+        action="store_true",
+        help="leave out run directories without results.json instead of failing",
+    )
+    args = parser.parse_args(argv)
+    if args.grid_step < 1:
+        parser.error(f"--grid-step must be a positive integer, got {args.grid_step}")
+    try:
+        aggregate(args.multirun_dirs, args.out, args.grid_step, args.allow_incomplete)
+    except AggregateError as error:
+        print(f"aggregate.py: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
