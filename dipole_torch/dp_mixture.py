@@ -634,6 +634,26 @@ class _Auxiliary:
     score: Tensor
 
 
+def _pass_start(
+    y: Tensor, state: DPMixtureState, log_r: Tensor
+) -> tuple[list[int], list[int], int, np.ndarray, np.ndarray]:
+    """What both numpy label passes start from: ``labels`` and ``counts`` as lists, a slot
+    ``capacity``, ``score [N, capacity]`` with score[i, c] = log r_c + log N(y_i; μ_c, Σ_c)
+    (columns of components opened in the sweep are filled only for the points still to
+    come) and ``log_counts [capacity]`` (−inf for empty slots)."""
+    n, k = y.shape[0], state.num_components
+    labels = state.labels.tolist()
+    counts = torch.bincount(state.labels, minlength=k).tolist()
+    capacity = max(2 * k, 8)
+    score = np.full((n, capacity), -math.inf)
+    starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
+    score[:, :k] = starting.numpy()
+    log_counts = np.full(capacity, -math.inf)
+    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
+        log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    return labels, counts, capacity, score, log_counts
+
+
 def _label_pass_numpy(
     y: Tensor,
     state: DPMixtureState,
@@ -660,17 +680,7 @@ def _label_pass_numpy(
         covariances and ``[k]`` counts (empty slots included).
     """
     n, k = y.shape[0], state.num_components
-    labels = state.labels.tolist()
-    counts = torch.bincount(state.labels, minlength=k).tolist()
-    capacity = max(2 * k, 8)
-    # score[i, c] = log r_c + log N(y_i; μ_c, Σ_c); columns of components opened in this
-    # sweep are filled only for the points still to come.
-    score = np.full((n, capacity), -math.inf)
-    starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
-    score[:, :k] = starting.numpy()
-    log_counts = np.full(capacity, -math.inf)
-    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
-        log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    labels, counts, capacity, score, log_counts = _pass_start(y, state, log_r)
     logits = np.empty(0)  # reused buffer for one point's K + m logits
     u = uniforms.tolist()
     opened: dict[int, tuple[Tensor, Tensor, Tensor, float]] = {}  # slot -> μ, Σ, L, log r
@@ -750,15 +760,7 @@ def _label_pass_reuse(
     gives ``[count]`` draws with ``score [N, count]`` at every point.
     """
     n, k = y.shape[0], state.num_components
-    labels = state.labels.tolist()
-    counts = torch.bincount(state.labels, minlength=k).tolist()
-    capacity = max(2 * k, 8)
-    score = np.full((n, capacity), -math.inf)
-    starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
-    score[:, :k] = starting.numpy()
-    log_counts = np.full(capacity, -math.inf)
-    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
-        log_counts[:k] = np.log(np.asarray(counts, dtype=float))
+    labels, counts, capacity, score, log_counts = _pass_start(y, state, log_r)
     logits = np.empty(capacity + m)
     u, slot_u = uniforms.tolist(), slot_uniforms.tolist()
     aux = fresh(m)
