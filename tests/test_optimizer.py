@@ -375,6 +375,18 @@ def test_optimizers_run_on_cuda(build):
     assert opt.best()[1] > -25.0  # within 0.5 of an optimum (the first samples: about -200)
 
 
+def started_dipole(dim, f):
+    """A default Dipole at θ0 = 0, Σ_start = I after its first tell on ``f``."""
+    opt = Dipole(
+        torch.zeros(dim, dtype=F64),
+        torch.eye(dim, dtype=F64),
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, f(theta))
+    return opt
+
+
 def test_a_retired_policy_short_of_the_top_is_replaced_by_a_better_candidate():
     # One hill, f(θ) = −θ². A policy retired at θ = 2 (its samples straddled, say) claims a
     # top; a candidate on the same hill with a better sample (θ = 1) refutes it: the probe
@@ -409,13 +421,7 @@ def test_a_retired_policy_short_of_the_top_is_replaced_by_a_better_candidate():
 def test_each_policy_weighs_its_samples_by_its_own_returns():
     # Per-policy importance sets take eq. 7's weights from the policy's own M returns
     # (best 1, worst the floor): a scout's or another policy's return never moves a policy.
-    opt = Dipole(
-        torch.zeros(2, dtype=F64),
-        torch.eye(2, dtype=F64),
-        generator=torch.Generator().manual_seed(0),
-    )
-    theta = opt.ask()
-    opt.tell(theta, two_optima(theta))
+    opt = started_dipole(2, two_optima)
     from dipole_torch.power import importance_sets
 
     _, index, valid = importance_sets(opt.owner, opt.rewards, opt.num_policies, opt.M)
@@ -435,13 +441,7 @@ def test_a_policy_whose_samples_straddle_two_hills_restarts_from_its_best():
     # a shrunken exploration: such a policy would retire in the valley. It restarts from
     # its best sample, keeping that sample only, with Σ_start's shape at its samples'
     # spread.
-    opt = Dipole(
-        torch.zeros(2, dtype=F64),
-        torch.eye(2, dtype=F64),
-        generator=torch.Generator().manual_seed(0),
-    )
-    theta = opt.ask()
-    opt.tell(theta, two_optima(theta))
+    opt = started_dipole(2, two_optima)
     thetas = torch.tensor([[1.0, 1.0], [1.01, 1.0], [-1.0, -0.98], [-1.02, -1.0]], dtype=F64)
     opt.thetas, opt.rewards = thetas, two_optima(thetas)
     opt.owner = torch.zeros(4, dtype=torch.long)
