@@ -13,6 +13,20 @@ Outputs (Hydra's run directory, ``outputs/<task>/<algo>/seed<seed>_<time>/``):
   ``GaussianMixture`` state dicts: see the README's "Use the policies in your code".
 * ``checkpoint.pt`` -- resume with ``resume=<path>``; the resumed run makes exactly the
   draws the uninterrupted one would have made.
+* ``train.log`` -- the run's log lines (Hydra's job logging; also on stdout, with the final
+  summary). TensorBoard's HPARAMS tab gets the flattened config with the final best return,
+  number of policies and trials.
+
+Config: ``configs/*.yaml`` extend the structured configs of ``dipole_torch.config``, so a
+value of the wrong type fails when the config is composed, naming its key;
+``python train.py --help`` lists every field. ``check_config`` checks what types cannot say.
+
+Trial budget: ``trials`` is never exceeded. A batch (one sample per active policy, plus
+DIPOLE's scouts and probes) is evaluated whole or not at all: PoWER (batches of one after the
+first ``n0``) reaches the budget exactly; DIPOLE stops at its last whole batch within it,
+taking back the ask that would cross it, so a resumed run with a larger budget makes the
+draws an uninterrupted one would have made. (An optimizer whose ``tell`` took the first rows
+of an ask would make the budget exact for DIPOLE too.)
 
 Reliability (README's "Reliability"): every output file is written under a temporary name
 and moved into place (``dipole_torch.checkpoint``), so ``kill -9`` at any moment leaves the
@@ -26,6 +40,7 @@ continues in the checkpoint's directory with the checkpoint's seed.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import re
@@ -43,15 +58,19 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+import dipole_torch.config  # noqa: F401 (registers the schemas configs/ extends)
 from dipole_torch import Dipole
 from dipole_torch.checkpoint import (
     CheckpointError,
     atomic_save,
     atomic_write_text,
     config_differences,
+    flatten,
     load_checkpoint,
     remove_stale_temporaries,
 )
+
+log = logging.getLogger("train")  # Hydra's job logging: stdout and the run's train.log
 
 CHECKPOINT_KEYS = ("optimizer", "task_generator", "history", "config")
 OUTPUTS = ("checkpoint.pt", "results.json", "policies.pt")  # each written atomically
@@ -87,27 +106,32 @@ def _run_dir_of(resume: Path) -> Path:
     return resume if resume.is_dir() else resume.parent  # a directory is refused later
 
 
-def _positive_int(value, minimum: int = 1) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= minimum
-
-
 def check_config(cfg: DictConfig) -> None:
-    """Reject bad values with a message naming the key (Hydra itself rejects unknown
-    task/algo names, listing the available ones)."""
-    if not _positive_int(cfg.trials):
+    """Reject values that have the right type but not a valid value, naming the key.
+
+    Types are checked earlier, when Hydra composes the config against the schemas of
+    ``dipole_torch.config`` (OmegaConf's ``ValidationError`` names the key); Hydra rejects
+    unknown task/algo names, listing the available ones. The optimizers and tasks check their
+    own arguments' ranges when they are built."""
+    if cfg.trials < 1:
         raise ValueError(
             f"trials (the trial budget) must be a positive integer, got {cfg.trials!r}"
         )
-    if not _positive_int(cfg.seed, minimum=0):
+    if cfg.seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {cfg.seed!r}")
-    if not _positive_int(cfg.task.n0):
+    if cfg.task.n0 < 1:
         raise ValueError(
             f"task.n0 (initial samples) must be a positive integer, got {cfg.task.n0!r}"
         )
+    if cfg.resume is None and cfg.trials < cfg.task.n0:
+        raise ValueError(
+            f"trials={cfg.trials} is below task.n0={cfg.task.n0}: the first batch (n0 trials) "
+            "would exceed the trial budget"
+        )
     for key in ("threads", "checkpoint_every"):
-        if not _positive_int(cfg[key]):
+        if cfg[key] < 1:
             raise ValueError(f"{key} must be a positive integer, got {cfg[key]!r}")
-    if not _positive_int(cfg.figure_every, minimum=0):
+    if cfg.figure_every < 0:
         raise ValueError(f"figure_every must be a non-negative integer, got {cfg.figure_every!r}")
     device = str(cfg.device)
     if not re.fullmatch(r"cpu|cuda(:\d+)?", device):
@@ -120,7 +144,7 @@ def check_config(cfg: DictConfig) -> None:
             raise ValueError(
                 f"device={device!r} but this machine has {torch.cuda.device_count()} CUDA device(s)"
             )
-    if cfg.resume is not None and (not isinstance(cfg.resume, str) or not cfg.resume):
+    if cfg.resume is not None and not cfg.resume:
         raise ValueError(f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}")
 
 
@@ -265,6 +289,44 @@ def log_iteration(writer: SummaryWriter, optimizer, iteration: int) -> dict[str,
     return row
 
 
+def ask_within_budget(optimizer, budget: int):
+    """The next batch, or ``None`` when evaluating it would take the run past ``budget`` trials.
+
+    A batch crossing the budget is taken back: the optimizer is restored to its state before
+    the ask (its generator included), so a run resumed with a larger budget makes the draws an
+    uninterrupted one would have made. (``tell`` takes whole asks only: PoWER's batches of one
+    reach the budget exactly, DIPOLE's stop within a batch of it.)"""
+    generator_state = optimizer.generator.get_state()
+    theta = optimizer.ask()
+    if optimizer.trials + theta.shape[0] <= budget:
+        return theta
+    state = optimizer.state_dict()
+    state.update(generator=generator_state, pending=None, pending_owner=None)
+    optimizer.load_state_dict(state)
+    log.info(
+        f"stopping at {optimizer.trials} of {budget} trials: the next batch has "
+        f"{theta.shape[0]} trials and would exceed the budget"
+    )
+    return None
+
+
+def log_hparams(writer: SummaryWriter, cfg: DictConfig, results: dict) -> None:
+    """TensorBoard's HPARAMS tab: the flattened config (``algo.optimizer.alpha``, ...) with
+    the final metrics, in the run's tensorboard directory."""
+    config = flatten(OmegaConf.to_container(cfg, resolve=True))
+    # TensorBoard takes numbers, strings and booleans: lists and null as text.
+    hparams = {
+        key: value if isinstance(value, bool | int | float | str) else json.dumps(value)
+        for key, value in config.items()
+    }
+    metrics = {
+        "hparam/best_reward": results["best_reward"],
+        "hparam/num_policies": len(results["policies"]),
+        "hparam/trials": results["trials"],
+    }
+    writer.add_hparams(hparams, metrics, run_name=".", global_step=results["trials"])
+
+
 def policy_summary(task, optimizer) -> list[dict]:
     means = optimizer.policy_means
     returns = task.evaluate(means.to(task.device, task.dtype))  # the means, without exploration
@@ -315,7 +377,7 @@ def main(cfg: DictConfig) -> dict:
     elapsed = 0.0  # wall time of the run's earlier sessions
     if checkpoint is not None:
         history, elapsed = restore(checkpoint, cfg.resume, optimizer, task_generator, shape)
-        print(f"resumed {cfg.resume} at {optimizer.trials} trials (seed {cfg.seed})")
+        log.info(f"resumed {cfg.resume} at {optimizer.trials} trials (seed {cfg.seed})")
     # purge_step hides events that a killed session logged after its last checkpoint.
     writer = SummaryWriter(
         str(out / "tensorboard"), purge_step=optimizer.trials + 1 if checkpoint else None
@@ -345,7 +407,9 @@ def main(cfg: DictConfig) -> dict:
     bar = tqdm(total=cfg.trials, initial=optimizer.trials, unit="trial", disable=not cfg.progress)
     with StopRequest() as stop:
         while optimizer.trials < cfg.trials and stop.signum is None:
-            theta = optimizer.ask()
+            theta = ask_within_budget(optimizer, cfg.trials)
+            if theta is None:
+                break
             rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
             optimizer.tell(theta, rewards)
             row = log_iteration(writer, optimizer, len(history))
@@ -363,18 +427,16 @@ def main(cfg: DictConfig) -> dict:
         if stop.signum is not None:
             writer.close()
             name = signal.Signals(stop.signum).name
-            print(
+            log.info(
                 f"\nstopped by {name} at {optimizer.trials} of {cfg.trials} trials; "
                 f"checkpoint written to {checkpoint_path}\nresume with:\n  "
-                f"{resume_command(overrides, checkpoint_path)}",
-                flush=True,
+                f"{resume_command(overrides, checkpoint_path)}"
             )
             raise SystemExit(128 + stop.signum)
 
     figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
     if figure is not None:
         writer.add_figure("policies/figure", figure, optimizer.trials)
-    writer.close()
     policies = policy_summary(task, optimizer)
     artefacts = {"policies": optimizer.policies.state_dict()}
     if isinstance(optimizer, Dipole):
@@ -386,6 +448,7 @@ def main(cfg: DictConfig) -> dict:
         "algo": cfg.algo.name,
         "seed": cfg.seed,
         "trials": optimizer.trials,
+        "trial_budget": cfg.trials,
         "wall_time_s": elapsed + time.perf_counter() - start,
         "best_reward": best_reward,
         "best_theta": best_theta.tolist(),
@@ -393,16 +456,21 @@ def main(cfg: DictConfig) -> dict:
         "history": {key: [row[key] for row in history] for key in history[0]} if history else {},
     }
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, allow_nan=False))
-    print(
+    log_hparams(writer, cfg, results)
+    writer.close()
+    # The summary: on stdout (plain) and in train.log, like every log line.
+    summary = [
         f"\n{cfg.algo.name} on {cfg.task.name}: best return {best_reward:.4g} in "
-        f"{optimizer.trials} trials; {len(policies)} policies (return of each mean):"
-    )
+        f"{optimizer.trials} trials (budget {cfg.trials}); {len(policies)} policies (return "
+        "of each mean):"
+    ]
     for k, policy in sorted(enumerate(policies), key=lambda kp: -kp[1]["return_of_mean"]):
         text = f"  policy {k}: return {policy['return_of_mean']:.4g}"
         if policy["description"]:
             text += f"  {policy['description']}"
-        print(text)
-    print(f"outputs in {out}")
+        summary.append(text)
+    summary.append(f"outputs in {out}")
+    log.info("\n".join(summary))
     assert math.isfinite(best_reward)
     return results
 

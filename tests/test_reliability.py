@@ -318,7 +318,7 @@ def test_train_writes_every_output_through_os_replace(tmp_path, monkeypatch):
 def test_a_checkpoint_holds_only_weights_only_loadable_data(finished_run):
     checkpoint = torch.load(finished_run / "checkpoint.pt", weights_only=True)
     assert isinstance(checkpoint["config"], str) and "multimodal" in checkpoint["config"]
-    assert checkpoint["optimizer"]["trials"] >= 40
+    assert 30 < checkpoint["optimizer"]["trials"] <= 40  # the budget: never exceeded
 
 
 def test_a_malicious_checkpoint_is_refused_and_runs_nothing(tmp_path):
@@ -424,7 +424,7 @@ def test_resume_keeps_the_seed_and_the_directory_of_the_checkpoint(finished_run,
     run_train(f"resume={copy / 'checkpoint.pt'}", "trials=70")
     resumed = json.loads((copy / "results.json").read_text())
     straight = json.loads((fresh_dir / "results.json").read_text())
-    assert resumed["seed"] == 3 and resumed["trials"] == straight["trials"] >= 70
+    assert resumed["seed"] == 3 and 60 < resumed["trials"] == straight["trials"] <= 70
     assert resumed["history"] == straight["history"]
     # Hydra's record of the first session is kept; the resumed ones go to .hydra/resume_*.
     assert "trials: 40" in (copy / ".hydra" / "config.yaml").read_text()
@@ -452,7 +452,7 @@ def test_config_differences_lists_dotted_keys():
     [
         ("device=cudafoo", "device must be 'cpu', 'cuda' or 'cuda:N', got 'cudafoo'"),
         ("device=cuda:x", "device must be 'cpu', 'cuda' or 'cuda:N'"),
-        ("trials=true", "trials (the trial budget) must be a positive integer, got True"),
+        ("checkpoint_every=0", "checkpoint_every must be a positive integer, got 0"),
         ("seed=-1", "seed must be a non-negative integer"),
         ("resume=''", "resume must be the path of a checkpoint.pt"),
     ],

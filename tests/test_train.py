@@ -1,16 +1,27 @@
-"""train.py end to end: outputs, TensorBoard scalars, resume, multirun, config errors."""
+"""train.py end to end: outputs, TensorBoard scalars and hparams, train.log, the trial budget,
+resume, multirun, typed configs and --help, config errors."""
 
+import dataclasses
 import json
 import os
 import subprocess
 import sys
+import typing
 from pathlib import Path
 
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
+from omegaconf.errors import ValidationError
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensorboard.plugins.hparams import plugin_data_pb2
+
+from dipole_torch import Dipole
+from dipole_torch import config as schemas
+from dipole_torch.checkpoint import flatten
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,7 +52,7 @@ def finished_run(tmp_path_factory):
 
 def test_outputs_and_tensorboard_scalars(finished_run):
     results = json.loads((finished_run / "results.json").read_text())
-    assert results["trials"] >= 80 and results["algo"] == "dipole"
+    assert results["trials"] <= 80 and results["algo"] == "dipole"
     history = results["history"]
     events = EventAccumulator(str(finished_run / "tensorboard"))
     events.Reload()
@@ -64,6 +75,76 @@ def test_outputs_and_tensorboard_scalars(finished_run):
     assert max(history["best_so_far"]) == pytest.approx(results["best_reward"])
     saved = torch.load(finished_run / "policies.pt")
     assert {"policies", "mixture"} <= set(saved)
+
+
+def test_hparams_hold_the_config_and_the_final_metrics(finished_run):
+    results = json.loads((finished_run / "results.json").read_text())
+    events = EventAccumulator(str(finished_run / "tensorboard"))
+    events.Reload()
+    content = events.PluginTagToContent("hparams")
+    assert {"_hparams_/experiment", "_hparams_/session_start_info"} <= set(content)
+    start = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/session_start_info"])
+    hparams = start.session_start_info.hparams
+    assert hparams["algo.optimizer.alpha"].number_value == 1.0
+    assert hparams["task.name"].string_value == "multimodal"
+    assert hparams["trials"].number_value == 80  # the budget
+    assert hparams["resume"].string_value == "null"
+    experiment = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/experiment"])
+    metrics = {m.name.tag for m in experiment.experiment.metric_infos}
+    assert metrics == {"hparam/best_reward", "hparam/num_policies", "hparam/trials"}
+    assert events.Scalars("hparam/best_reward")[-1].value == pytest.approx(results["best_reward"])
+    assert events.Scalars("hparam/num_policies")[-1].value == len(results["policies"])
+    assert events.Scalars("hparam/trials")[-1].value == results["trials"]
+
+
+def test_train_log_holds_the_log_lines_and_the_summary(finished_run):
+    results = json.loads((finished_run / "results.json").read_text())
+    log = (finished_run / "train.log").read_text()
+    assert f"dipole on multimodal: best return {results['best_reward']:.4g}" in log
+    assert f"in {results['trials']} trials (budget 80)" in log
+    assert "[train][INFO]" in log  # Hydra's file format: time, logger, level
+    assert log.count("  policy ") == len(results["policies"])
+
+
+def test_the_summary_is_on_stdout(tmp_path):
+    out = train("algo=power", "trials=20", f"hydra.run.dir={tmp_path}").stdout
+    assert "power on multimodal: best return" in out and "in 20 trials (budget 20)" in out
+    assert "  policy 0: return" in out and f"outputs in {tmp_path}" in out
+    assert "[INFO]" not in out  # plain lines on stdout; train.log has time and level
+
+
+def test_power_evaluates_exactly_the_trial_budget(tmp_path):
+    train("algo=power", "trials=37", f"hydra.run.dir={tmp_path}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["trials"] == 37 and results["trial_budget"] == 37
+    assert results["history"]["trials"][-1] == 37
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert events.Scalars("reward/best")[-1].step == 37
+
+
+def test_dipole_stops_at_the_last_whole_batch_within_the_budget(finished_run):
+    """The run ends where the next batch would cross the budget; that batch was taken back:
+    the checkpoint's optimizer, asked again, proposes it (with the same draws)."""
+    results = json.loads((finished_run / "results.json").read_text())
+    assert results["trial_budget"] == 80
+    trials = results["trials"]
+    assert 80 - 10 < trials <= 80  # within a batch (at most 8 policies + scouts + probes)
+    checkpoint = torch.load(finished_run / "checkpoint.pt", weights_only=True)
+    assert checkpoint["optimizer"]["trials"] == trials
+    assert checkpoint["optimizer"]["pending"] is None  # the crossing ask was taken back
+    cfg = compose_config("trials=80")
+    task = instantiate(cfg.task.env)
+    optimizer = instantiate(
+        cfg.algo.optimizer,
+        theta0=task.theta0.double(),
+        sigma_start=task.sigma_start.double(),
+        n0=cfg.task.n0,
+        generator=torch.Generator(),
+    )
+    assert isinstance(optimizer, Dipole)
+    optimizer.load_state_dict(checkpoint["optimizer"])
+    assert trials + optimizer.ask().shape[0] > 80
 
 
 def test_resume_continues_exactly(finished_run, tmp_path):
@@ -89,7 +170,7 @@ def test_multirun_over_seeds(tmp_path):
 def test_the_papers_dipole_runs_from_the_command_line(tmp_path):
     train("task=multimodal", "algo=dipole_paper", "trials=40", f"hydra.run.dir={tmp_path}")
     results = json.loads((tmp_path / "results.json").read_text())
-    assert results["algo"] == "dipole_paper" and results["trials"] >= 40
+    assert results["algo"] == "dipole_paper" and 30 < results["trials"] <= 40
 
 
 def test_unknown_task_on_the_command_line(tmp_path):
@@ -105,6 +186,127 @@ def compose_config(*overrides):
 
 
 @pytest.mark.parametrize(
+    "overrides, key, message",
+    [
+        (["algo.optimizer.alpha=abc"], "algo.optimizer.alpha", "could not be converted to Float"),
+        (["algo=power", "algo.optimizer.M=2.5"], "algo.optimizer.M", "converted to Integer"),
+        (
+            ["algo=dipole_paper", "algo.optimizer.reward_weighted=maybe"],
+            "algo.optimizer.reward_weighted",
+            "Value 'maybe' is not a valid bool",
+        ),
+        (["task=viapoint", "task.env.pass_times=[0.4,soon]"], "task.env.pass_times[1]", "Float"),
+        (["task=cartpole", "task.n0=ten"], "task.n0", "could not be converted to Integer"),
+        (["trials=true"], "trials", "could not be converted to Integer"),
+        (["seed=abc"], "seed", "could not be converted to Integer"),
+    ],
+)
+def test_a_value_of_the_wrong_type_fails_naming_the_key(overrides, key, message):
+    with pytest.raises(ConfigCompositionException) as error:
+        compose_config(*overrides)
+    cause = error.value.__cause__
+    assert isinstance(cause, ValidationError), repr(cause)
+    assert message in str(cause) and cause.full_key == key
+
+
+def test_a_wrong_type_on_the_command_line_names_the_key(tmp_path):
+    result = train("algo.optimizer.alpha=abc", f"hydra.run.dir={tmp_path}", check=False)
+    assert result.returncode != 0 and not (tmp_path / "checkpoint.pt").exists()
+    assert "Value 'abc' of type 'str' could not be converted to Float" in result.stderr
+    assert "full_key: algo.optimizer.alpha" in result.stderr
+
+
+def test_the_configs_extend_the_schemas_and_build_their_targets():
+    """Every YAML option is typed by its schema, in a fresh process that imports nothing of
+    this project (the hydra_plugins hook registers the schemas), and instantiates."""
+    options = [(f"task={name}", "algo=dipole") for name in schemas.TASKS if name != "task"]
+    options += [("task=multimodal", f"algo={name}") for name in schemas.ALGOS if name != "algo"]
+    code = (
+        "import sys\n"
+        "from hydra import compose, initialize_config_dir\n"
+        "from omegaconf import OmegaConf\n"
+        f"with initialize_config_dir({str(ROOT / 'configs')!r}, version_base=None):\n"
+        f"    for overrides in {options!r}:\n"
+        "        cfg = compose('config', overrides=list(overrides))\n"
+        "        print(OmegaConf.get_type(cfg).__name__, OmegaConf.get_type(cfg.task).__name__,\n"
+        "              OmegaConf.get_type(cfg.algo).__name__)\n"
+        "assert 'dipole_torch.config' in sys.modules and 'train' not in sys.modules\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    types = [line.split() for line in result.stdout.splitlines()]
+    expected = [["Config", schemas.TASKS[name].__name__, "DipoleAlgo"] for name in schemas.TASKS]
+    expected = [row for row in expected if row[1] != "TaskConfig"]
+    expected += [
+        ["Config", "MultimodalTask", schemas.ALGOS[name].__name__] for name in schemas.ALGOS
+    ]
+    expected = [row for row in expected if row[2] != "AlgoConfig"]
+    assert types == expected
+    # The optimizers build from their configs, keyword arguments and _target_ included.
+    theta0, sigma = torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64)
+    paper = instantiate(
+        compose_config("algo=dipole_paper", "algo.optimizer.alpha=2").algo.optimizer,
+        theta0=theta0,
+        sigma_start=sigma,
+        reward_range=(0.0, 1.0),
+    )
+    assert paper.is_paper_variant and paper.alpha == 2.0
+    default = instantiate(
+        compose_config(
+            "algo.optimizer.max_policies=null", "algo.optimizer.explore=0"
+        ).algo.optimizer,
+        theta0=theta0,
+        sigma_start=sigma,
+    )
+    assert default.max_policies is None and default.explore == 0.0
+    # The YAML files hold every key of their schema (the documented values), and no other.
+    for group, table in (("task", schemas.TASKS), ("algo", schemas.ALGOS)):
+        for name, schema in table.items():
+            if name in ("task", "algo"):
+                continue
+            yaml = OmegaConf.to_container(OmegaConf.load(ROOT / "configs" / group / f"{name}.yaml"))
+            assert yaml.pop("defaults") == [f"base_{name}", "_self_"]
+            keys = set(flatten(OmegaConf.to_container(OmegaConf.structured(schema))))
+            assert set(flatten(yaml)) == keys, name
+
+
+def test_help_lists_every_field_with_its_help():
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), "--help"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    text = " ".join(result.stdout.split())  # help lines are wrapped
+    assert "algo.optimizer.alpha: float = 1.0 DP concentration (> 0)" in text
+    assert "task.env.reward_alpha: float = 2.5" in text
+    assert "trials: int = the value of task.trials" in text
+    sections = [(schemas.Config, ""), (schemas.TaskConfig, "task."), (schemas.AlgoConfig, "algo.")]
+    for table, key, prefix in (
+        (schemas.TASKS, "env", "task.env."),
+        (schemas.ALGOS, "optimizer", "algo.optimizer."),
+    ):
+        for schema in table.values():
+            leaf = typing.get_type_hints(schema)[key]
+            if dataclasses.is_dataclass(leaf):  # not the untyped base_task / base_algo
+                sections.append((leaf, prefix))
+    assert len(sections) == 3 + 4 + 3
+    for schema, prefix in sections:
+        for f in dataclasses.fields(schema):
+            if f.name in ("task", "algo", "env", "optimizer"):
+                continue
+            assert f"{prefix}{f.name}: " in text, f"{prefix}{f.name}"
+            assert " ".join(f.metadata["help"].split()) in text, f"{prefix}{f.name}"
+    for name in [*schemas.TASKS, *schemas.ALGOS]:
+        if name not in ("task", "algo"):
+            assert f"{'algo' if name in schemas.ALGOS else 'task'}={name}: " in text
+
+
+@pytest.mark.parametrize(
     "override, message",
     [
         ("trials=-5", "trials (the trial budget) must be a positive integer"),
@@ -112,6 +314,8 @@ def compose_config(*overrides):
         ("device=tpu", "device must be 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
         ("threads=0", "threads must be a positive integer"),
         ("task.n0=0", "task.n0 (initial samples) must be a positive integer"),
+        ("trials=5", "trials=5 is below task.n0=10: the first batch (n0 trials) would exceed"),
+        ("figure_every=-1", "figure_every must be a non-negative integer"),
     ],
 )
 def test_bad_config_values_give_a_clear_error(override, message):
