@@ -657,6 +657,7 @@ class Dipole(PolicySearch):
         self.success = torch.full((1,), self.TARGET_SUCCESS, dtype=DTYPE, device=self.device)
         self.paths = torch.zeros(1, self.dim, dtype=DTYPE, device=self.device)
         self.clusterings_skipped = 0  # clusterings that failed numerically (see _cluster)
+        self._in_valley: Tensor | None = None  # within one tell (see _before_append)
         self.initial_prior: NormalInverseWishartPrior | None = None
         self.dp_state: DPMixtureState | None = None
 
@@ -720,11 +721,18 @@ class Dipole(PolicySearch):
         one. A success moves the policy's evolution path p towards the step x − μ and adds
         the rank-one term c_cov p pᵀ to its covariance; the success rate p̄ scales the
         covariance by exp((p̄ − p_t) / (d (1 − p_t)))²."""
+        self._in_valley = None
         if self.exploration != "success" or not self.started:
             return
         rows = owner >= 0
         policy = owner[rows]
         succeeded = rewards[rows] > self.policy_best_rewards[policy]
+        # A sample worse than every kept one of its policy (see _recentre_straddlers).
+        worst = torch.full((self.num_policies,), math.inf, dtype=DTYPE, device=self.device)
+        owned = self.owner >= 0
+        worst = worst.scatter_reduce(0, self.owner[owned], self.rewards[owned], "amin")
+        self._in_valley = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
+        self._in_valley[policy] = rewards[rows] < worst[policy]
         d = self.dim
         c_c, c_cov = 2.0 / (d + 2.0), 2.0 / (d * d + 6.0)
         step = theta[rows] - self.policy_means[policy]
@@ -778,12 +786,13 @@ class Dipole(PolicySearch):
             if self.iteration % self.cluster_every == 0:
                 self._cluster_paper()
             return
+        # First, while the policies are numbered as in this tell's samples.
+        self._recentre_straddlers(self._in_valley)
         self._judge_candidates()
         restart = not bool(self.active.any())
         clustered = restart or self.iteration % self.cluster_every == 0
         if clustered:
             self._cluster()
-        self._recentre_straddlers()
         self._retire_and_merge()
         self._probe_candidates()
         if clustered and self.hill_valley and (self.iteration // self.cluster_every) % 4 == 0:
@@ -1166,9 +1175,10 @@ class Dipole(PolicySearch):
         ratio = covs.diagonal(dim1=-2, dim2=-1) / self.sigma_start.diagonal()
         return ratio.amax(-1).sqrt()
 
-    def _recentre_straddlers(self) -> None:
+    def _recentre_straddlers(self, in_valley: Tensor | None) -> None:
         """Restart a policy from its best kept sample when that sample lies more than
-        3 + √D exploration stds (Mahalanobis, under the policy's covariance) from its mean.
+        3 + √D exploration stds (Mahalanobis, under the policy's covariance) from its mean
+        and the policy's latest sample (``in_valley [K]``) was worse than all its kept ones.
 
         Its kept samples then straddle two or more hills (the clustering gave it samples
         from both): eq. 7 puts the mean between them, in a valley, where no new sample beats
@@ -1176,8 +1186,10 @@ class Dipole(PolicySearch):
         short of any top (seen on 2-D landscapes: means at 41 % of the height with the best
         sample at 98 %, 368 stds away). The policy keeps its best sample only, as a new
         policy would, and explores with Σ_start's shape at its old samples' spread around
-        it."""
-        if self.exploration != "success" or self.num_policies == 0:
+        it. The second condition spares a policy on a plateau (cart-pole's 1000 steps): its
+        exploration shrinks below its kept samples' spread too, but its samples tie with
+        the kept ones."""
+        if in_valley is None or self.num_policies == 0:
             return
         best = self._policy_best_samples()
         chol, info = torch.linalg.cholesky_ex(self.policy_covariances)
@@ -1188,7 +1200,7 @@ class Dipole(PolicySearch):
             chol, (best - self.policy_means)[:, :, None], upper=False
         ).squeeze(-1)
         limit = 3.0 + math.sqrt(self.dim)
-        straddling = ok & self.active & (z.norm(dim=-1) > limit)
+        straddling = ok & self.active & in_valley & (z.norm(dim=-1) > limit)
         if not bool(straddling.any()):
             return
         for j in straddling.nonzero().squeeze(-1).tolist():

@@ -449,7 +449,10 @@ def test_a_policy_whose_samples_straddle_two_hills_restarts_from_its_best():
     opt.policy_covariances = 1e-6 * torch.eye(2, dtype=F64)[None]
     opt.active = torch.ones(1, dtype=torch.bool)
     opt.success, opt.paths = opt.success[:1], opt.paths[:1]
-    opt._recentre_straddlers()
+    means, covs = opt.policy_means.clone(), opt.policy_covariances.clone()
+    opt._recentre_straddlers(torch.zeros(1, dtype=torch.bool))  # latest sample: a tie
+    assert torch.equal(opt.policy_means, means) and torch.equal(opt.policy_covariances, covs)
+    opt._recentre_straddlers(torch.ones(1, dtype=torch.bool))  # latest sample: worse
     assert torch.equal(opt.policy_means[0], thetas[0])
     assert float(opt.policy_covariances[0, 0, 0]) > 0.1
     assert torch.equal(opt.thetas, thetas[:1])
