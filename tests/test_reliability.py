@@ -568,7 +568,8 @@ def test_a_signal_writes_a_checkpoint_and_prints_the_resume_command(driver_repor
 # ------------------------------------------------------------------ the driver process
 def _fork_train(train, args, log, slow_disk=False):
     """Run ``train.main()`` with ``args`` in a forked child; return its pid. ``slow_disk``:
-    every fsync takes 20 ms longer (a slow disk), so that more kills land mid-write."""
+    every fsync takes 0.3 s longer (a stalled disk), so that a kill aimed at a write lands
+    while its temporary exists even on a loaded machine (20 ms missed every aim there)."""
     sys.stdout.flush()
     sys.stderr.flush()
     pid = os.fork()
@@ -583,7 +584,7 @@ def _fork_train(train, args, log, slow_disk=False):
             fsync = os.fsync
 
             def slow_fsync(fd):
-                time.sleep(0.02)
+                time.sleep(0.3)
                 fsync(fd)
 
             os.fsync = slow_fsync
@@ -661,16 +662,17 @@ def _driver(work: Path, kills: int) -> dict:
         resume = checkpoint.exists()
         kill["resumes"] += resume
         args = [*BASE, f"hydra.run.dir={run}"] + ([f"resume={checkpoint}"] if resume else [])
-        pid = _fork_train(train, args, work / "killed.log", slow_disk=True)
+        killing = len(kill["kills"]) < kills
+        # Every third kill lands while a checkpoint is being written (its temporary
+        # exists), or after two iterations' time if none is seen.
+        mid_write = killing and len(kill["kills"]) % 3 == 2
+        pid = _fork_train(train, args, work / "killed.log", slow_disk=mid_write)
         status = None
-        if len(kill["kills"]) < kills:
+        if killing:
             writes, delay = rng.choice([0, 0, 0, 1, 1]), rng.uniform(0.0, 0.8 * period)
-            # Every third kill lands while a checkpoint is being written (its temporary
-            # exists), or after two iterations' time if none is seen.
-            mid_write = len(kill["kills"]) % 3 == 2
             inode, deadline = _inode(checkpoint), None
             if mid_write:
-                deadline = time.monotonic() + 1.0 + 2 * period
+                deadline = time.monotonic() + 1.0 + 2 * period + 0.6
             while status is None and (deadline is None or time.monotonic() < deadline):
                 done, raw = os.waitpid(pid, os.WNOHANG)
                 status = os.waitstatus_to_exitcode(raw) if done else None
