@@ -346,9 +346,14 @@ class PolicySearch:
     @property
     def policy_best_rewards(self) -> Tensor:
         """``[K]`` the best return among each policy's kept samples (−inf: none)."""
-        best = torch.full((self.num_policies,), -math.inf, dtype=DTYPE, device=self.device)
+        return self._per_policy_rewards("amax")
+
+    def _per_policy_rewards(self, reduce: str) -> Tensor:
+        """``[K]`` the ``"amax"`` or ``"amin"`` of each policy's kept returns (∓inf: none)."""
+        empty = -math.inf if reduce == "amax" else math.inf
+        start = torch.full((self.num_policies,), empty, dtype=DTYPE, device=self.device)
         owned = self.owner >= 0
-        return best.scatter_reduce(0, self.owner[owned], self.rewards[owned], "amax")
+        return start.scatter_reduce(0, self.owner[owned], self.rewards[owned], reduce)
 
     # ------------------------------------------------------------------ checkpoints
     _TENSORS = (
@@ -728,9 +733,7 @@ class Dipole(PolicySearch):
         policy = owner[rows]
         succeeded = rewards[rows] > self.policy_best_rewards[policy]
         # A sample worse than every kept one of its policy (see _recentre_straddlers).
-        worst = torch.full((self.num_policies,), math.inf, dtype=DTYPE, device=self.device)
-        owned = self.owner >= 0
-        worst = worst.scatter_reduce(0, self.owner[owned], self.rewards[owned], "amin")
+        worst = self._per_policy_rewards("amin")
         self._in_valley = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
         self._in_valley[policy] = rewards[rows] < worst[policy]
         d = self.dim
@@ -1175,6 +1178,17 @@ class Dipole(PolicySearch):
         ratio = covs.diagonal(dim1=-2, dim2=-1) / self.sigma_start.diagonal()
         return ratio.amax(-1).sqrt()
 
+    def _exploration_distance(self, diff: Tensor) -> Tensor:
+        """``[K, P]`` the Mahalanobis lengths of ``diff: [K, P, D]`` under each policy's
+        exploration covariance (row k under policy k's); inf in the rows whose covariance
+        has lost definiteness in float64."""
+        chol, info = torch.linalg.cholesky_ex(self.policy_covariances)
+        ok = info == 0
+        eye = torch.eye(self.dim, dtype=DTYPE, device=self.device)
+        chol = torch.where(ok[:, None, None], chol, eye)
+        z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
+        return torch.where(ok[:, None], z.square().sum(-2).sqrt(), math.inf)
+
     def _recentre_straddlers(self, in_valley: Tensor | None) -> None:
         """Restart a policy from its best kept sample when that sample lies more than
         3 + √D exploration stds (Mahalanobis, under the policy's covariance) from its mean
@@ -1189,18 +1203,13 @@ class Dipole(PolicySearch):
         it. The second condition spares a policy on a plateau (cart-pole's 1000 steps): its
         exploration shrinks below its kept samples' spread too, but its samples tie with
         the kept ones."""
-        if in_valley is None or self.num_policies == 0:
-            return
+        if in_valley is None or not bool((in_valley & self.active).any()):
+            return  # the usual case: no factorisation needed
         best = self._policy_best_samples()
-        chol, info = torch.linalg.cholesky_ex(self.policy_covariances)
-        ok = info == 0
-        eye = torch.eye(self.dim, dtype=DTYPE, device=self.device)
-        chol = torch.where(ok[:, None, None], chol, eye)
-        z = torch.linalg.solve_triangular(
-            chol, (best - self.policy_means)[:, :, None], upper=False
-        ).squeeze(-1)
+        distance = self._exploration_distance((best - self.policy_means)[:, None, :])[:, 0]
         limit = 3.0 + math.sqrt(self.dim)
-        straddling = ok & self.active & in_valley & (z.norm(dim=-1) > limit)
+        # (A covariance that lost definiteness, distance inf, restarts nothing.)
+        straddling = self.active & in_valley & distance.isfinite() & (distance > limit)
         if not bool(straddling.any()):
             return
         for j in straddling.nonzero().squeeze(-1).tolist():
@@ -1222,16 +1231,10 @@ class Dipole(PolicySearch):
             self.active = self.active & (self._relative_std() >= self.retire_std)
         if self.merge_radius <= 0 or self.num_policies < 2:
             return
-        # Mahalanobis distance of policy b's mean under policy a's exploration: [K, K].
+        # Mahalanobis distance of policy b's mean under policy a's exploration: [K, K]
+        # (inf: a's covariance lost definiteness in float64 and judges no duplicates).
         diff = self.policy_means[None, :, :] - self.policy_means[:, None, :]
-        chol, info = torch.linalg.cholesky_ex(self.policy_covariances)
-        chol = torch.where(
-            (info == 0)[:, None, None], chol, torch.eye(self.dim, dtype=DTYPE, device=self.device)
-        )
-        z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
-        distance = z.square().sum(-2).sqrt()  # [a, b]: under a's covariance
-        # A covariance that lost definiteness in float64 judges no duplicates.
-        distance = torch.where((info == 0)[:, None], distance, math.inf)
+        distance = self._exploration_distance(diff)
         near = distance < self.merge_radius
         best = self.policy_best_rewards
         drop = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
