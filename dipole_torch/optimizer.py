@@ -260,6 +260,64 @@ class PolicySearch:
             self._power_step()
             self._after_iteration()
 
+    def reevaluate(self, returns: Tensor) -> None:
+        """Tell the optimizer that the world changed: ``returns`` are the returns of its
+        stored policies measured after the change.
+
+        Every return the optimizer kept was measured before the change and is forgotten:
+        each policy keeps one sample, its mean, with its new return, and the best so far
+        (:meth:`best`) becomes the best policy mean. A policy whose new return is below every
+        return it had kept was hurt by the change: it is sampled again (a retired one too)
+        from its mean with Σ_start's exploration, so it searches for a way around. The others
+        go on as before. The next ``ask``/``tell`` continue the run; the trial count grows by
+        K (one evaluation per stored policy, no relearning)::
+
+            theta = opt.policy_means.to(dtype)        # [K, D], retired policies included
+            opt.reevaluate(evaluate(theta))           # [K] returns in the changed world
+            best_policy = opt.policy_means[opt.last_rewards.argmax()]   # switch to it
+
+        Args:
+            returns: ``[K]`` the return of each row of :attr:`policy_means`, finite (and inside
+                ``reward_range`` when a fixed one was given).
+
+        A pending ``ask`` is discarded. If anything raises, the optimizer is unchanged.
+        """
+        if not self.started:
+            raise RuntimeError("reevaluate() needs a started run: tell() the first batch first")
+        returns = check_rewards(torch.as_tensor(returns), self.num_policies).to(self.device)
+        self.reward_scale.validate(returns)
+        snapshot = self.state_dict()
+        try:
+            self._reevaluate(returns.to(DTYPE))
+        except BaseException:
+            self.load_state_dict(snapshot)
+            raise
+
+    def _reevaluate(self, returns: Tensor) -> None:
+        k = self.num_policies
+        hurt = returns < self._per_policy_rewards("amin")  # no kept samples: +inf, hurt
+        self.thetas = self.policy_means.clone()
+        self.rewards = returns.clone()
+        self.owner = torch.arange(k, device=self.device)
+        self.trials += k
+        self.last_rewards = returns.clone()
+        best = int(returns.argmax())
+        self._best_theta = self.policy_means[best].clone()
+        self._best_reward = float(returns[best])
+        self._pending = self._pending_owner = None
+        # Queued hill-valley tests compare returns of the old world.
+        for name in self._TENSORS:
+            if name.startswith(("candidate_", "pair_", "probe_")):
+                setattr(self, name, getattr(self, name)[:0])
+        self._after_reevaluation(hurt)
+
+    def _after_reevaluation(self, hurt: Tensor) -> None:
+        """Restart the policies ``hurt`` ``[K]`` by the change (see :meth:`reevaluate`)."""
+        self.active = self.active | hurt
+        self.policy_covariances = torch.where(
+            hurt[:, None, None], self.sigma_start, self.policy_covariances
+        )
+
     def _retired_rewards(self) -> Tensor:
         """``[R]`` the mean kept return of each retired policy."""
         retired = (~self.active).nonzero().squeeze(-1)
@@ -759,6 +817,12 @@ class Dipole(PolicySearch):
         self.paths[policy] = paths
         self.success[policy] = success
         self.policy_covariances[policy] = covs * factor[:, None, None] ** 2
+
+    def _after_reevaluation(self, hurt: Tensor) -> None:
+        super()._after_reevaluation(hurt)
+        self.success = torch.where(hurt, self.TARGET_SUCCESS, self.success)
+        self.paths = torch.where(hurt[:, None], 0.0, self.paths)
+        self._in_valley = None
 
     def _power_step(self) -> None:
         if self.importance == "global":

@@ -456,3 +456,66 @@ def test_a_policy_whose_samples_straddle_two_hills_restarts_from_its_best():
     assert torch.equal(opt.policy_means[0], thetas[0])
     assert float(opt.policy_covariances[0, 0, 0]) > 0.1
     assert torch.equal(opt.thetas, thetas[:1])
+
+
+def two_hills(theta, heights=(1.0, 1.0)):
+    """``[B]`` returns of two equal cones at ∓(2, 2) in 2-D (a hill of height 0 is gone)."""
+    centres = torch.tensor([[-2.0, -2.0], [2.0, 2.0]], dtype=theta.dtype)
+    distance = torch.cdist(theta, centres)
+    return (torch.tensor(heights, dtype=theta.dtype) * (1.0 - distance / 4.0)).amax(-1)
+
+
+def test_reevaluate_switches_to_a_stored_policy_when_the_world_changes():
+    theta0, sigma = torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64) * 4.0
+    for seed in range(5):
+        opt = Dipole(theta0, sigma, generator=torch.Generator().manual_seed(seed))
+        while opt.trials < 400:
+            theta = opt.ask()
+            opt.tell(theta, two_hills(theta))
+        means = opt.policy_means
+        on = [bool((torch.linalg.norm(means - c, dim=-1) < 0.1).any()) for c in (-2.0, 2.0)]
+        if all(on):
+            break
+    else:
+        pytest.fail("no run found both hills")
+    # The hill at (2, 2) disappears: one evaluation per stored policy finds the other.
+    trials, k = opt.trials, opt.num_policies
+    returns = two_hills(means, heights=(1.0, 0.0))
+    opt.reevaluate(returns)
+    assert opt.trials == trials + k
+    assert torch.equal(opt.last_rewards, returns) and torch.equal(opt.rewards, returns)
+    best_theta, best_reward = opt.best()
+    assert torch.linalg.norm(best_theta + 2.0) < 0.1 and best_reward > 0.97
+    hurt = torch.linalg.norm(means - 2.0, dim=-1) < 0.1
+    assert bool(opt.active[hurt].all())  # searching again, from Σ_start
+    assert torch.equal(opt.policy_covariances[hurt], sigma.expand(int(hurt.sum()), 2, 2))
+    # Learning goes on in the changed world; the switched-to policy stays.
+    while opt.trials < trials + k + 100:
+        theta = opt.ask()
+        opt.tell(theta, two_hills(theta, heights=(1.0, 0.0)))
+    assert opt.best()[1] >= best_reward
+    assert bool((torch.linalg.norm(opt.policy_means + 2.0, dim=-1) < 0.1).any())
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
+def test_reevaluate_rejects_bad_returns_and_leaves_the_optimizer_untouched(cls):
+    task = MultimodalTask()
+    opt = make(cls, task)
+    with pytest.raises(RuntimeError, match="tell"):
+        opt.reevaluate(torch.zeros(1, dtype=F64))
+    run(opt, task, 40)
+    before = opt.state_dict()
+    k = opt.num_policies
+    for bad, message in (
+        (torch.zeros(k + 1, dtype=F64), "shape"),
+        (torch.full((k,), math.nan, dtype=F64), "finite|NaN"),
+        (torch.full((k,), 1e9, dtype=F64), "range"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            opt.reevaluate(bad)
+        after = opt.state_dict()
+        for key, value in before.items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(value, after[key]), key
+    opt.reevaluate(task.evaluate(opt.policy_means))
+    run(opt, task, opt.trials + 20)
