@@ -39,9 +39,11 @@ __all__ = [
     "MountainCarTask",
     "MultimodalEnv",
     "MultimodalTask",
+    "Obstacle",
     "PowerAlgo",
     "PowerOptimizer",
     "TaskConfig",
+    "ViapointBlock",
     "ViapointEnv",
     "ViapointTask",
     "help_text",
@@ -179,6 +181,14 @@ class MountainCarTask(TaskConfig):
 
 
 @dataclass
+class Obstacle:
+    """A sphere in the viapoint task's space that the end effector's path must not enter."""
+
+    centre: list[float] = _field(MISSING, "m: [x, y, z] centre in the arm's base frame")
+    radius: float = _field(MISSING, "m: radius")
+
+
+@dataclass
 class ViapointEnv:
     _target_: str = _field("tasks.viapoint.ViapointTask", "the task's class")
     device: str = _field(_DEVICE, _DEVICE_HELP)
@@ -221,6 +231,24 @@ class ViapointEnv:
     )
     exploration_std: float = _field(0.05, "m: initial exploration std of each coordinate")
     ik_damping: float = _field(0.05, "m: lambda of the damped-least-squares IK")
+    obstacles: list[Obstacle] = _field(
+        [], "spheres {centre: [x, y, z], radius} (m) the end effector's path must not enter"
+    )
+    penetration_scale: float = _field(
+        0.02, "m: penetration depth into an obstacle that divides the reward by e"
+    )
+
+
+@dataclass
+class ViapointBlock:
+    """``task.block``: after ``trial`` trials on the layout, a sphere blocks the route of the
+    best policy; the optimizer re-evaluates its stored policies and goes on learning."""
+
+    trial: int = _field(300, "trials before the block (the optimizer's last whole batch)")
+    radius: float = _field(0.08, "m: radius of the sphere put on the best policy's route")
+    threshold: float = _field(
+        0.9, "return of a good policy: the block keeps the most good routes open"
+    )
 
 
 @dataclass
@@ -232,6 +260,9 @@ class ViapointTask(TaskConfig):
     n0: int = _field(30, "initial samples from N(theta0, sigma_start); PoWER uses the same")
     env: ViapointEnv = field(
         default_factory=ViapointEnv, metadata={"help": "tasks.viapoint.ViapointTask"}
+    )
+    block: ViapointBlock | None = _field(
+        None, "null: the layout stays; else an obstacle blocks the best route (viapoint_blocked)"
     )
 
 

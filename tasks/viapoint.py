@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -76,6 +77,19 @@ class ViapointTask(EpisodicTask):
     The end point is not scored (eq. 9 as in the paper): the fixed final component makes the
     path end at the target whatever θ is.
 
+    Obstacles (``obstacles``, none by default): spheres the end effector must not enter,
+    checked on the path the arm actually makes (after tracking, every step of it). A path
+    that enters has its eq. 9 reward multiplied by ``exp(−p / penetration_scale)``, where
+    ``p`` is its penetration depth (m): how far the path goes inside the obstacles at its
+    deepest point, ``max_t max_j (ρ_j − ‖x(t) − c_j‖)⁺`` for spheres of centre ``c_j`` and
+    radius ``ρ_j``. With ``penetration_scale = 0.02`` m, a path 2 cm deep keeps 37 % of its
+    reward and one through the centre of an 8 cm sphere 1.8 %; one that only grazes a
+    sphere keeps almost all of it. The factor is continuous (and differentiable almost
+    everywhere) in θ, so that among samples that all enter an obstacle the shallower ones
+    rank higher and a reward-weighted update (PoWER) climbs out; a reward of 0 inside would
+    give it no direction. :meth:`set_obstacles` / :meth:`with_obstacles` change them at run
+    time (the world changes), :meth:`blocking_obstacle` places one on a learned route.
+
     ## Starting State
 
     Deterministic: the arm at rest at ``q_start``. With a ``start`` point, ``q_start`` is the
@@ -107,6 +121,10 @@ class ViapointTask(EpisodicTask):
     * ``exploration_std``: std (m) of the initial exploration of every attractor coordinate,
       ``sigma_start = exploration_std² I`` (0.05).
     * ``ik_damping``: λ of the damped least squares in m (0.05).
+    * ``obstacles``: spheres ``[{"centre": [x, y, z], "radius": ρ}, ...]`` (m) the end
+      effector's path must not enter (none); start and target must lie outside them.
+    * ``penetration_scale``: m, the penetration depth at which an obstacle divides the
+      reward by e (0.02).
     * ``urdf``: the arm's URDF file (default: the bundled WAM, ``models/wam/wam7.urdf``);
       relative paths are looked up in the current directory, then in the project root.
     * ``end_effector``: the link the task moves (``"wam_tool"``); ``base_link``: the link
@@ -204,6 +222,8 @@ class ViapointTask(EpisodicTask):
         goal_time: float | None = None,
         exploration_std: float = 0.05,
         ik_damping: float = 0.05,
+        obstacles: Sequence[Mapping] = (),
+        penetration_scale: float = 0.02,
         urdf: str | Path = URDF_PATH,
         end_effector: str = END_EFFECTOR_LINK,
         base_link: str | None = None,
@@ -227,11 +247,13 @@ class ViapointTask(EpisodicTask):
             ("reward_alpha", reward_alpha),
             ("exploration_std", exploration_std),
             ("ik_damping", ik_damping),
+            ("penetration_scale", penetration_scale),
         ):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
         self.reward_alpha = float(reward_alpha)  # α of eq. 9, 1/m
         self.ik_damping = float(ik_damping)  # λ of the damped least squares, m
+        self.penetration_scale = float(penetration_scale)  # m: depth that divides reward by e
         self.pass_times = [float(t) for t in pass_times]  # seconds
         if len(self.pass_times) == 0:
             raise ValueError("pass_times must name at least one pass time")
@@ -305,6 +327,101 @@ class ViapointTask(EpisodicTask):
         self.theta0 = (self.start + fractions[:, None] * (self.target - self.start)).reshape(-1)
         self.sigma_start = exploration_std**2 * torch.eye(3 * k, **factory)
         self.reward_range = (0.0, 1.0)
+        self.set_obstacles(obstacles)
+
+    # ------------------------------------------------------------------ obstacles
+    def set_obstacles(self, obstacles: Sequence[Mapping]) -> None:
+        """Replace the obstacles by the spheres ``[{"centre": [x, y, z], "radius": ρ}, ...]``
+        (m); ``[]`` clears them. Raises ``ValueError`` naming the entry for a bad sphere or one
+        that holds the start or the target (every path would enter it)."""
+        obstacles = _plain(obstacles)
+        if isinstance(obstacles, Mapping):
+            raise ValueError(f"obstacles must be a list of spheres, got one mapping {obstacles!r}")
+        factory = {"device": self.device, "dtype": self.dtype}
+        centres, radii = [], []
+        for j, sphere in enumerate(obstacles):
+            if not isinstance(sphere, Mapping) or set(sphere) != {"centre", "radius"}:
+                raise ValueError(
+                    f"obstacles[{j}] must be {{'centre': [x, y, z], 'radius': r}}, got {sphere!r}"
+                )
+            centre = _point(sphere["centre"], f"obstacles[{j}].centre", factory)
+            radius = sphere["radius"]
+            if not (isinstance(radius, int | float) and math.isfinite(radius) and radius > 0):
+                raise ValueError(f"obstacles[{j}].radius must be a positive number, got {radius!r}")
+            for name, point in (("start", self.start), ("target", self.target)):
+                if float(torch.linalg.vector_norm(point - centre)) <= radius:
+                    raise ValueError(
+                        f"obstacles[{j}] (centre {centre.tolist()}, radius {radius}) holds the "
+                        f"{name} point {point.tolist()}: every path would enter it"
+                    )
+            centres.append(centre)
+            radii.append(float(radius))
+        # As given (full precision, plain floats: JSON, checkpoints, configs).
+        self._obstacles = [
+            {"centre": [float(x) for x in sphere["centre"]], "radius": float(sphere["radius"])}
+            for sphere in obstacles
+        ]
+        self.obstacle_centres = torch.stack(centres) if centres else torch.zeros(0, 3, **factory)
+        self.obstacle_radii = torch.tensor(radii, **factory)  # [J] m
+
+    def with_obstacles(self, obstacles: Sequence[Mapping]) -> ViapointTask:
+        """A copy of this task with other obstacles (see :meth:`set_obstacles`); it shares
+        the arm and the layout, so making it costs no inverse kinematics."""
+        task = copy.copy(self)
+        task.set_obstacles(obstacles)
+        return task
+
+    @property
+    def obstacles(self) -> list[dict]:
+        """The obstacles as ``[{"centre": [x, y, z], "radius": ρ}, ...]`` (m), as given."""
+        return copy.deepcopy(self._obstacles)
+
+    def penetration(self, path: Tensor) -> Tensor:
+        """``[B]`` penetration depth (m) of ``path: [B, T+1, 3]`` into the obstacles: how far
+        inside a sphere it goes at its deepest point (0 for a path that stays outside)."""
+        if self.obstacle_radii.numel() == 0:
+            return path.new_zeros(path.shape[0])
+        offsets = path.unsqueeze(-2) - self.obstacle_centres  # [B, T+1, J, 3]
+        depth = self.obstacle_radii - torch.linalg.vector_norm(offsets, dim=-1)  # [B, T+1, J]
+        return depth.clamp_min(0.0).flatten(1).amax(dim=-1)
+
+    def blocking_obstacle(
+        self, theta: Tensor, radius: float = 0.08, threshold: float = 0.9
+    ) -> tuple[dict, str]:
+        """A sphere that blocks the route of the best of the policies ``theta: [K, D]``.
+
+        The sphere of ``radius`` (m) is centred on a viapoint the best policy's path passes
+        (its route's alternative at one pass time). The pass time is the one where most of the
+        other routes taken by good policies (return ≥ ``threshold`` on the current layout)
+        pass the other alternative, so they stay open; ties go to the earliest pass time (with
+        no other good route: the first). The default 8 cm keeps the start and the target
+        (11.7 and 10.0 cm from the first and last viapoints of the default layout) outside,
+        and the paths of the routes through the other alternatives (19 cm away at the middle
+        pass time, about 10 cm from the first and last viapoints near the start and target).
+
+        Returns:
+            The obstacle (``{"centre": [3], "radius": radius}``, for :meth:`set_obstacles`)
+            and a description, e.g. ``"a sphere of radius 8 cm on the far viapoint at
+            t = 1.2 s (route below / far / above)"``.
+        """
+        with torch.no_grad():
+            path = self.trajectory(theta)
+            returns = self.reward(path)
+            routes = self.viapoint_distances(path).argmin(dim=-1)  # [K, N_v]
+        best = int(returns.argmax())
+        others = routes[(returns >= threshold) & (routes != routes[best]).any(dim=-1)]
+        others = torch.unique(others, dim=0)  # distinct good routes but the best's
+        kept_open = (others != routes[best]).sum(dim=0)  # [N_v] routes avoiding each viapoint
+        i = int(kept_open.argmax())  # the first of equal counts
+        alternative = int(routes[best, i])
+        centre = [round(x, 6) for x in self.viapoints[i, alternative].tolist()]  # float32 noise
+        obstacle = {"centre": centre, "radius": float(radius)}
+        name = self.alternative_names[i][alternative]
+        description = (
+            f"a sphere of radius {100 * radius:g} cm on the {name} viapoint at "
+            f"t = {self.pass_times[i]:g} s (route {self.route_name(routes[best].tolist())})"
+        )
+        return obstacle, description
 
     # ------------------------------------------------------------------ rollouts
     def desired_trajectory(self, theta: Tensor) -> Tensor:
@@ -333,9 +450,13 @@ class ViapointTask(EpisodicTask):
         return torch.linalg.vector_norm(path[:, -1] - self.target, dim=-1)
 
     def reward(self, path: Tensor) -> Tensor:
-        """Eq. 9 of an end-effector path ``[B, T+1, 3]``: ``[B]`` in ``[0, 1]``."""
+        """Eq. 9 of an end-effector path ``[B, T+1, 3]``: ``[B]`` in ``[0, 1]``, times
+        ``exp(−penetration / penetration_scale)`` where there are obstacles."""
         nearest = self.viapoint_distances(path).amin(dim=-1)  # [B, N_v]
-        return torch.exp(-self.reward_alpha * nearest).mean(dim=-1)
+        reward = torch.exp(-self.reward_alpha * nearest).mean(dim=-1)
+        if self.obstacle_radii.numel() == 0:
+            return reward  # the open layout: eq. 9 exactly
+        return reward * torch.exp(-self.penetration(path) / self.penetration_scale)
 
     def route(self, theta: Tensor) -> Tensor:
         """``LongTensor [B, N_v]``: index of the nearest alternative at each pass time."""
@@ -382,20 +503,23 @@ class ViapointTask(EpisodicTask):
         time), the reward of the arm's path, the distance (cm) to the nearest viapoint at each
         pass time and the distance (cm) of the path's end from the target, e.g.
         ``route (0, 1, 1): below / far / above, return 0.972, misses 0.3 / 0.9 / 0.5 cm,
-        ends 0.2 cm from the target``."""
+        ends 0.2 cm from the target`` (and ``, 3.1 cm deep in an obstacle`` for a path that
+        enters one)."""
         with torch.no_grad():
             path = self.trajectory(theta)
             rewards = self.reward(path)
             distances = self.viapoint_distances(path)
             ends = (100.0 * self.end_point_error(path)).tolist()  # cm
+            depths = (100.0 * self.penetration(path)).tolist()  # cm
         routes = distances.argmin(-1).tolist()
         nearest = (100.0 * distances.amin(-1)).tolist()  # cm
         return [
             f"route {tuple(route)}: {self.route_name(route)}, return {reward:.3f}, misses "
             + " / ".join(f"{d:.1f}" for d in misses)
             + f" cm, ends {end:.1f} cm from the target"
-            for route, reward, misses, end in zip(
-                routes, rewards.tolist(), nearest, ends, strict=True
+            + (f", {depth:.1f} cm deep in an obstacle" if depth > 0 else "")
+            for route, reward, misses, end, depth in zip(
+                routes, rewards.tolist(), nearest, ends, depths, strict=True
             )
         ]
 
@@ -446,6 +570,16 @@ class ViapointTask(EpisodicTask):
             )
             for point, name in zip(points, names[i], strict=True):
                 ax.text(*point, f" {name}", fontsize=8, color="0.25")
+        # Obstacles as wireframe spheres; their extremes join the box so the scale stays equal.
+        u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 24), np.linspace(0, np.pi, 12))
+        unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])  # [3, 12, 24]
+        extremes = [np.zeros((0, 3))]
+        for j, obstacle in enumerate(self.obstacles):
+            centre, radius = np.array(obstacle["centre"]), obstacle["radius"]
+            sphere = centre[:, None, None] + radius * unit
+            label = "obstacle" if j == 0 else None
+            ax.plot_wireframe(*sphere, color="0.35", lw=0.5, alpha=0.5, label=label)
+            extremes.append(centre + radius * np.concatenate([np.eye(3), -np.eye(3)]))
         start, target = self.start.double().cpu().numpy(), self.target.double().cpu().numpy()
         ax.scatter(*start, s=60, color="green", marker="*", label="start")
         ax.scatter(*target, s=60, color="red", marker="*", label="target")
@@ -455,7 +589,9 @@ class ViapointTask(EpisodicTask):
         arm = "WAM" if self.kinematics.urdf_path == URDF_PATH.resolve() else None
         arm = arm or self.kinematics.robot_name
         ax.set_title(title or f"{arm} end-effector paths of {path.shape[0]} policies")
-        everything = np.concatenate([path.reshape(-1, 3), self.viapoints.reshape(-1, 3).cpu()])
+        everything = np.concatenate(
+            [path.reshape(-1, 3), self.viapoints.reshape(-1, 3).double().cpu(), *extremes]
+        )
         ax.set_box_aspect(np.ptp(everything, axis=0) + 0.02)  # equal scale on x, y, z
         ax.view_init(elev=20, azim=-35)
         ax.legend(loc="center left", fontsize=8, bbox_to_anchor=(1.02, 0.5))
@@ -493,7 +629,10 @@ def _make_kinematics(
 
 
 def _plain(value):
-    """Nested sequences (e.g. Hydra's ``ListConfig``) as nested Python lists."""
+    """Nested sequences and mappings (e.g. Hydra's ``ListConfig``, ``DictConfig``) as nested
+    Python lists and dicts."""
+    if isinstance(value, Mapping):
+        return {key: _plain(item) for key, item in value.items()}
     if isinstance(value, (str, bytes, Tensor)) or not hasattr(value, "__iter__"):
         return value
     return [_plain(item) for item in value]
