@@ -13,6 +13,12 @@ Outputs (Hydra's run directory, ``outputs/<task>/<algo>/seed<seed>_<time>/``):
   ``GaussianMixture`` state dicts: see the README's "Use the policies in your code".
 * ``checkpoint.pt`` -- resume with ``resume=<path>``; the resumed run makes exactly the
   draws the uninterrupted one would have made.
+* With ``task=viapoint_blocked`` (a ``task.block`` section), the world changes mid-run: after
+  ``task.block.trial`` trials an obstacle blocks the route of the best policy, the optimizer
+  re-evaluates its stored policies there (``optimizer.reevaluate``, one trial each) and goes
+  on; TensorBoard gets the policies' paths before and after (``block/before``,
+  ``block/after``), the scalars go on across the block, ``results.json`` says what happened
+  (``block``).
 * ``train.log`` -- the run's log lines (Hydra's job logging; also on stdout, with the final
   summary). TensorBoard's HPARAMS tab gets the flattened config with the final best return,
   number of policies and trials.
@@ -89,6 +95,9 @@ RESUME_MAY_CHANGE = (
     "progress",
     "seed",
 )
+# Keys added to the configs after checkpoints were written, with the values that reproduce
+# the runs that wrote them: such a checkpoint resumes (where this config has the key).
+ADDED_KEYS = {"task.env.obstacles": [], "task.env.penetration_scale": 0.02, "task.block": None}
 
 # On resume, Hydra's run directory is the checkpoint's (unless hydra.run.dir is given) and
 # Hydra's own record goes to .hydra/resume_<time>, keeping the original run's .hydra/.
@@ -144,6 +153,12 @@ def check_config(cfg: DictConfig) -> None:
             raise ValueError(
                 f"device={device!r} but this machine has {torch.cuda.device_count()} CUDA device(s)"
             )
+    block = cfg.task.get("block")
+    if block is not None and block.trial < cfg.task.n0:
+        raise ValueError(
+            f"task.block.trial={block.trial} is below task.n0={cfg.task.n0}: the block "
+            "re-evaluates learned policies, after the first batch at least"
+        )
     if cfg.resume is not None and not cfg.resume:
         raise ValueError(f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}")
 
@@ -166,6 +181,13 @@ def load_resume(cfg: DictConfig) -> dict:
     if not isinstance(saved, dict):
         raise CheckpointError(f"{cfg.resume!r} holds no config (got {type(saved).__name__})")
     current = OmegaConf.to_container(cfg, resolve=True)
+    for key, value in ADDED_KEYS.items():
+        if key in flatten(current) and key not in flatten(saved):
+            *parents, leaf = key.split(".")
+            node = saved
+            for parent in parents:
+                node = node.setdefault(parent, {})
+            node[leaf] = value
     differences = config_differences(saved, current, ignore=RESUME_MAY_CHANGE)
     if differences:
         # The group choices (task.name, algo.name) first, then the settings.
@@ -289,8 +311,9 @@ def log_iteration(writer: SummaryWriter, optimizer, iteration: int) -> dict[str,
     return row
 
 
-def ask_within_budget(optimizer, budget: int):
-    """The next batch, or ``None`` when evaluating it would take the run past ``budget`` trials.
+def ask_within_budget(optimizer, budget: int, say_why: bool = True):
+    """The next batch, or ``None`` when evaluating it would take the run past ``budget`` trials
+    (``say_why``: log it).
 
     A batch crossing the budget is taken back: the optimizer is restored to its state before
     the ask (its generator included), so a run resumed with a larger budget makes the draws an
@@ -303,11 +326,48 @@ def ask_within_budget(optimizer, budget: int):
     state = optimizer.state_dict()
     state.update(generator=generator_state, pending=None, pending_owner=None)
     optimizer.load_state_dict(state)
-    log.info(
-        f"stopping at {optimizer.trials} of {budget} trials: the next batch has "
-        f"{theta.shape[0]} trials and would exceed the budget"
-    )
+    if say_why:
+        log.info(
+            f"stopping at {optimizer.trials} of {budget} trials: the next batch has "
+            f"{theta.shape[0]} trials and would exceed the budget"
+        )
     return None
+
+
+def block_the_route(task, optimizer, block: DictConfig, writer: SummaryWriter, generator):
+    """The world changes (``task.block``): an obstacle appears on the route of the best policy.
+
+    The optimizer evaluates its stored policies once each in the new world and is told
+    (``reevaluate``, K trials): its best policy mean becomes the policy it executes, policies
+    the obstacle hurt search again. Returns the blocked task and what happened (for the
+    checkpoint and ``results.json``)."""
+    means = optimizer.policy_means.to(task.device, task.dtype)
+    trial = optimizer.trials
+    title = f"before the block: {len(means)} policies after {trial} trials"
+    writer.add_figure("block/before", task.plot_policies(means, title=title), trial)
+    obstacle, description = task.blocking_obstacle(means, block.radius, block.threshold)
+    task = task.with_obstacles([*task.obstacles, obstacle])
+    returns = task.evaluate(means, generator=generator)
+    optimizer.reevaluate(returns)
+    switched = int(returns.argmax())
+    title = f"after the block: the same policies, re-evaluated ({optimizer.trials} trials)"
+    writer.add_figure("block/after", task.plot_policies(means, title=title), optimizer.trials)
+    lines = task.describe_policies(means)
+    report = (
+        f"block at {trial} trials: {description}; the {len(means)} stored policies "
+        f"re-evaluated (now {optimizer.trials} trials), switching to policy {switched}: "
+        + "\n  ".join(["", *(f"policy {k}: {line}" for k, line in enumerate(lines))])
+    )
+    log.info(report)
+    writer.add_text("block", report.replace("\n", "  \n"), optimizer.trials)
+    info = {
+        "trial": trial,
+        "obstacle": obstacle,
+        "description": description,
+        "returns": returns.double().tolist(),
+        "switched_to": switched,
+    }
+    return task, info
 
 
 def log_hparams(writer: SummaryWriter, cfg: DictConfig, results: dict) -> None:
@@ -375,8 +435,12 @@ def main(cfg: DictConfig) -> dict:
     shape = {"dimension": optimizer.dim, "reward_range": reward_range}
     history: list[dict] = []
     elapsed = 0.0  # wall time of the run's earlier sessions
+    block, blocked = cfg.task.get("block"), None  # viapoint_blocked: the world changes
     if checkpoint is not None:
         history, elapsed = restore(checkpoint, cfg.resume, optimizer, task_generator, shape)
+        blocked = checkpoint.get("block")
+        if blocked is not None:  # the checkpoint's world: with the obstacle
+            task = task.with_obstacles([*task.obstacles, blocked["obstacle"]])
         log.info(f"resumed {cfg.resume} at {optimizer.trials} trials (seed {cfg.seed})")
     # purge_step hides events that a killed session logged after its last checkpoint.
     writer = SummaryWriter(
@@ -399,6 +463,7 @@ def main(cfg: DictConfig) -> dict:
                 "config": config_yaml,
                 "overrides": overrides,
                 "wall_time_s": elapsed + time.perf_counter() - start,
+                "block": blocked,
                 **shape,
             },
             checkpoint_path,
@@ -407,7 +472,19 @@ def main(cfg: DictConfig) -> dict:
     bar = tqdm(total=cfg.trials, initial=optimizer.trials, unit="trial", disable=not cfg.progress)
     with StopRequest() as stop:
         while optimizer.trials < cfg.trials and stop.signum is None:
-            theta = ask_within_budget(optimizer, cfg.trials)
+            block_due = block is not None and blocked is None and block.trial < cfg.trials
+            theta = ask_within_budget(
+                optimizer, block.trial if block_due else cfg.trials, say_why=not block_due
+            )
+            if theta is None and block_due:  # the next batch would cross the block
+                trials = optimizer.trials
+                if trials + optimizer.num_policies > cfg.trials:
+                    log.info(f"no block: re-evaluating would take the run past {cfg.trials}")
+                    break
+                task, blocked = block_the_route(task, optimizer, block, writer, task_generator)
+                history.append(log_iteration(writer, optimizer, len(history)))
+                bar.update(optimizer.trials - trials)
+                continue
             if theta is None:
                 break
             rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
@@ -453,6 +530,7 @@ def main(cfg: DictConfig) -> dict:
         "best_reward": best_reward,
         "best_theta": best_theta.tolist(),
         "policies": policies,
+        **({"block": blocked} if blocked is not None else {}),
         "history": {key: [row[key] for row in history] for key in history[0]} if history else {},
     }
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, allow_nan=False))

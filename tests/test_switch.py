@@ -1,0 +1,214 @@
+"""A changing world on the viapoint task: obstacles on the arm's path, the block that puts one
+on a learned route, and switching to a stored route (optimizer.reevaluate), in the library and
+in train.py (task=viapoint_blocked)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from hydra.utils import instantiate
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from test_train import compose_config, train
+from test_viapoint import route_policies
+
+from dipole_torch import Dipole
+from tasks.viapoint import ViapointTask
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def task() -> ViapointTask:
+    return ViapointTask(dtype=F64, kinematics="wam_dh")
+
+
+@pytest.fixture(scope="module")
+def routes(task):
+    return route_policies(task)  # θ [8, 9] passing every viapoint of each route exactly
+
+
+def test_an_obstacle_costs_reward_only_where_the_arm_path_enters_it(task, routes):
+    thetas, route_list = routes
+    far = route_list.index((0, 1, 1))  # passes the far viapoint at 1.2 s
+    near = route_list.index((0, 0, 1))
+    blocked = task.with_obstacles([{"centre": [0.6, 0.06, 0.0], "radius": 0.08}])
+    open_rewards, rewards = task.evaluate(thetas), blocked.evaluate(thetas)
+    paths = blocked.trajectory(thetas)
+    depth = blocked.penetration(paths)
+    # The routes through "far" go through the sphere's centre: 8 cm deep.
+    enters = depth > 0
+    assert enters.tolist() == [route[1] == 1 for route in route_list]
+    assert float(depth[far]) == pytest.approx(0.08, abs=2e-3)
+    expected = open_rewards * torch.exp(-depth / blocked.penetration_scale)
+    torch.testing.assert_close(rewards, expected)
+    assert float(rewards[far]) < 0.05 and torch.equal(rewards[~enters], open_rewards[~enters])
+    assert float(rewards[near]) >= 0.99
+    # Continuous in the depth: a path grazing the sphere keeps almost all of its reward.
+    distance = (paths[far] - torch.tensor([0.6, 0.06, 0.0], dtype=F64)).norm(dim=-1).min()
+    graze = task.with_obstacles([{"centre": [0.6, 0.06, 0.0], "radius": float(distance) + 1e-3}])
+    assert float(graze.evaluate(thetas[far : far + 1])[0]) > 0.94
+    # The task without obstacles is eq. 9 exactly, and the copy left the original open.
+    assert task.obstacles == [] and blocked.obstacles[0]["radius"] == 0.08
+    assert torch.equal(open_rewards, ViapointTask(dtype=F64, kinematics="wam_dh").evaluate(thetas))
+
+
+def test_obstacles_are_checked_on_the_path_the_arm_makes(task):
+    """A sphere beyond the arm's reach on the DS-GMR reference path: the reference enters it,
+    the tracked end-effector path cannot, and the reward is unchanged."""
+    theta = task.theta0.clone()
+    theta[3:6] = torch.tensor([2.0, 0.0, 0.5], dtype=F64)  # middle attractor 2 m out
+    desired = task.desired_trajectory(theta[None])
+    actual = task.trajectory(theta[None])
+    outermost = desired[0, desired[0].norm(dim=-1).argmax()]
+    clearance = float((actual[0] - outermost).norm(dim=-1).min())
+    assert clearance > 0.2
+    blocked = task.with_obstacles([{"centre": outermost.tolist(), "radius": clearance / 2}])
+    assert float(blocked.penetration(desired)[0]) > 0 and float(blocked.penetration(actual)) == 0
+    torch.testing.assert_close(blocked.evaluate(theta[None]), task.evaluate(theta[None]))
+
+
+def test_obstacles_from_the_config_and_bad_obstacles():
+    cfg = compose_config("task=viapoint", "task.env.kinematics=wam_dh")
+    assert cfg.task.env.obstacles == [] and cfg.task.block is None
+    assert instantiate(cfg.task.env).obstacles == []
+    sphere = "{centre: [0.4, 0.06, 0.0], radius: 0.05}"
+    cfg = compose_config("task=viapoint", f"task.env.obstacles=[{sphere}]")
+    task = instantiate(cfg.task.env)
+    assert task.obstacles == [{"centre": [0.4, 0.06, 0.0], "radius": 0.05}]
+    blocked = compose_config("task=viapoint_blocked")
+    assert blocked.task.name == "viapoint_blocked"
+    assert blocked.task.env == compose_config("task=viapoint").task.env  # the open layout
+    assert blocked.task.block.trial == 300 and blocked.task.block.radius == 0.08
+    cfg = compose_config("task=viapoint", "task.env.obstacles=[{centre: [0.4, 0.0, 0.0]}]")
+    with pytest.raises(Exception, match="obstacles.*radius"):  # a missing value, named
+        instantiate(cfg.task.env)
+    with pytest.raises(Exception, match="obstacles.*radius"):  # a wrong type, named
+        compose_config(
+            "task=viapoint", "task.env.obstacles=[{centre: [0.4, 0.0, 0.0], radius: big}]"
+        )
+    with pytest.raises(ValueError, match=r"obstacles\[0\].radius must be a positive"):
+        task.set_obstacles([{"centre": [0.4, 0.06, 0.0], "radius": -0.1}])
+    with pytest.raises(ValueError, match=r"obstacles\[1\].centre must be a finite"):
+        task.set_obstacles(
+            [{"centre": [0.4, 0.06, 0.0], "radius": 0.1}, {"centre": [0.4], "radius": 0.1}]
+        )
+    with pytest.raises(ValueError, match=r"obstacles\[0\].*holds the start point"):
+        task.set_obstacles([{"centre": [0.5, -0.3, 0.0], "radius": 0.1}])
+    with pytest.raises(ValueError, match=r"obstacles\[0\] must be"):
+        task.set_obstacles([[0.4, 0.06, 0.0, 0.1]])
+    assert task.obstacles == [{"centre": [0.4, 0.06, 0.0], "radius": 0.05}]  # unchanged
+
+
+def test_the_block_keeps_the_other_good_routes_open(task, routes):
+    thetas, route_list = routes
+    pick = [route_list.index(r) for r in [(0, 0, 1), (0, 1, 1), (1, 1, 1)]]
+    slightly_worse = thetas[pick].clone()
+    slightly_worse[0, 0] += 0.02  # (0, 0, 1) is no longer the best: (0, 1, 1) or (1, 1, 1)
+    obstacle, description = task.blocking_obstacle(slightly_worse, radius=0.08)
+    blocked = task.with_obstacles([obstacle])
+    returns = blocked.evaluate(slightly_worse)
+    best = int(task.evaluate(slightly_worse).argmax())
+    # The best route is blocked; of the other two, the pass time chosen leaves one open.
+    assert float(returns[best]) < 0.1 and int((returns >= 0.9).sum()) >= 1
+    assert "cm on the" in description and "viapoint at t = " in description
+    # Alone, a route is blocked at its first pass time.
+    obstacle, _ = task.blocking_obstacle(thetas[pick[0] : pick[0] + 1])
+    assert obstacle["centre"] == pytest.approx(task.viapoints[0, 0].tolist())
+
+
+def test_dipole_switches_to_a_stored_route_within_k_trials():
+    """The default DIPOLE (seed 3, 3 routes on the open layout, see test_viapoint): after 300
+    trials its best route is blocked; re-evaluating its K stored policies (K trials, no
+    relearning) finds one at return >= 0.9 on another route."""
+    task = ViapointTask(kinematics="wam_dh")
+    opt = Dipole(
+        task.theta0.double(),
+        task.sigma_start.double(),
+        n0=30,
+        generator=torch.Generator().manual_seed(3),
+    )
+    while opt.trials < 300:
+        theta = opt.ask()
+        opt.tell(theta, task.evaluate(theta.float()))
+    means = opt.policy_means.float()
+    obstacle, _ = task.blocking_obstacle(means)
+    blocked = task.with_obstacles([obstacle])
+    before, trials = task.evaluate(means), opt.trials
+    returns = blocked.evaluate(means)
+    opt.reevaluate(returns)
+    assert opt.trials == trials + len(means)
+    assert float(returns[int(before.argmax())]) < 0.5  # the route it had was blocked
+    assert opt.best()[1] >= 0.9  # a stored policy on another route
+    switched = int(returns.argmax())
+    assert (
+        task.route(means[switched : switched + 1]).tolist()
+        != task.route(means[int(before.argmax())][None]).tolist()
+    )
+
+
+@pytest.fixture(scope="module")
+def blocked_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("blocked")
+    train(
+        "task=viapoint_blocked",
+        "task.env.kinematics=wam_dh",
+        "task.block.trial=45",
+        "trials=75",
+        "figure_every=0",
+        f"hydra.run.dir={run_dir}",
+    )
+    return run_dir
+
+
+def test_train_blocks_reevaluates_and_goes_on(blocked_run):
+    results = json.loads((blocked_run / "results.json").read_text())
+    block = results["block"]
+    assert 30 <= block["trial"] <= 45 and results["trials"] <= 75
+    assert block["obstacle"]["radius"] == 0.08 and "viapoint at t = " in block["description"]
+    history = results["history"]
+    after = history["trials"].index(block["trial"] + len(block["returns"]))
+    assert history["trials"][after - 1] == block["trial"]  # the re-evaluation: K trials
+    assert history["best_so_far"][after] == pytest.approx(max(block["returns"]))
+    assert history["trials"][-1] > history["trials"][after]  # it went on learning
+    events = EventAccumulator(str(blocked_run / "tensorboard"), size_guidance={"images": 0})
+    events.Reload()
+    assert {"block/before", "block/after", "policies/figure"} <= set(events.Tags()["images"])
+    assert events.Images("block/before")[0].step == block["trial"]
+    assert [e.step for e in events.Scalars("reward/best_so_far")] == history["trials"]
+    assert "block at" in (blocked_run / "train.log").read_text()
+
+
+def test_a_resumed_blocked_run_continues_exactly(blocked_run, tmp_path):
+    common = ["task=viapoint_blocked", "task.env.kinematics=wam_dh", "task.block.trial=45"]
+    train(*common, "trials=60", "figure_every=0", f"hydra.run.dir={tmp_path}")
+    train(*common, "trials=75", "figure_every=0", f"resume={tmp_path / 'checkpoint.pt'}")
+    resumed = json.loads((tmp_path / "results.json").read_text())
+    whole = json.loads((blocked_run / "results.json").read_text())
+    assert resumed["block"] == whole["block"]
+    assert resumed["history"] == whole["history"]
+    assert resumed["best_theta"] == whole["best_theta"]
+
+
+def test_power_on_the_blocked_task(tmp_path):
+    train(
+        "task=viapoint_blocked",
+        "algo=power",
+        "task.env.kinematics=wam_dh",
+        "task.block.trial=40",
+        "trials=50",
+        "figure_every=0",
+        f"hydra.run.dir={tmp_path}",
+    )
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["block"]["trial"] == 40 and len(results["block"]["returns"]) == 1
+    assert results["trials"] == 50 and math.isfinite(results["best_reward"])
+
+
+def test_a_block_before_the_first_batch_is_refused():
+    from train import check_config
+
+    with pytest.raises(ValueError, match="task.block.trial=10 is below task.n0=30"):
+        check_config(compose_config("task=viapoint_blocked", "task.block.trial=10"))
