@@ -310,7 +310,7 @@ class DipoleOptimizer:
     exploration: str = _field(
         "success", "success: success-rule exploration per policy; clustering: DP posterior"
     )
-    explore: float = _field(0.1, "scouts from N(theta0, sigma_start) per policy sample, [0, 1]")
+    explore: float = _field(0.05, "scouts from N(theta0, sigma_start) per policy sample, [0, 1]")
     max_policies: int | None = _field(8, "active policies at most (null: no limit)")
     retire_std: float = _field(
         0.001, "retire a policy once its exploration std is below this x sigma_start's"

@@ -652,7 +652,7 @@ class Dipole(PolicySearch):
         prior_df: float | None = None,
         importance: str = "policy",
         exploration: str = "success",
-        explore: float = 0.1,
+        explore: float = 0.05,
         max_policies: int | None = 8,
         retire_std: float = 1e-3,
         merge_radius: float = 1.0,
