@@ -1,7 +1,12 @@
 """Train DIPOLE or PoWER on a task: ``python train.py task=viapoint algo=dipole seed=3``.
 
+Installed from a wheel, the same script is ``dipole_torch.train`` and the ``dipole-train``
+command: ``dipole-train task=viapoint algo=dipole seed=3`` (setup.py puts this file into the
+wheel; ``configs/`` sits next to it in both places).
+
 Reads top to bottom: config, seeding, task and optimizer, the ask/tell loop with TensorBoard
-logging and checkpoints, results. Everything else lives in ``dipole_torch`` and ``tasks``.
+logging and checkpoints, results. Everything else lives in ``dipole_torch`` (the library) and
+``dipole_torch.tasks`` (``tasks/``).
 Outputs (Hydra's run directory, ``outputs/<task>/<algo>/seed<seed>_<time>/``):
 
 * ``tensorboard/`` -- scalars against trials: ``reward/best``, ``reward/mean`` (best and
@@ -98,6 +103,9 @@ RESUME_MAY_CHANGE = (
 # Keys added to the configs after checkpoints were written, with the values that reproduce
 # the runs that wrote them: such a checkpoint resumes (where this config has the key).
 ADDED_KEYS = {"task.env.obstacles": [], "task.env.penetration_scale": 0.02, "task.block": None}
+# Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
+# config names the old module resumes.
+MOVED_PREFIXES = {"tasks.": "dipole_torch.tasks."}
 
 # On resume, Hydra's run directory is the checkpoint's (unless hydra.run.dir is given) and
 # Hydra's own record goes to .hydra/resume_<time>, keeping the original run's .hydra/.
@@ -188,6 +196,11 @@ def load_resume(cfg: DictConfig) -> dict:
             for parent in parents:
                 node = node.setdefault(parent, {})
             node[leaf] = value
+    env = saved.get("task", {}).get("env")
+    target = env.get("_target_") if isinstance(env, dict) else None
+    for old, new in MOVED_PREFIXES.items():
+        if isinstance(target, str) and target.startswith(old):
+            env["_target_"] = new + target.removeprefix(old)
     differences = config_differences(saved, current, ignore=RESUME_MAY_CHANGE)
     if differences:
         # The group choices (task.name, algo.name) first, then the settings.
@@ -244,13 +257,16 @@ def _overrides() -> list[str]:
 
 
 def resume_command(overrides: list[str], checkpoint: str | Path) -> str:
-    """The shell command that resumes this run from ``checkpoint``."""
+    """The shell command that resumes this run from ``checkpoint``: ``python train.py ...``,
+    or ``dipole-train ...`` when the run was started by that command."""
+    program = sys.argv[0] or "train.py"
+    launcher = ["python", program] if program.endswith(".py") else [Path(program).name]
     keep = [
         o
         for o in overrides
         if o.split("=", 1)[0].lstrip("+~") not in ("resume", "hydra.run.dir", "hydra.output_subdir")
     ]
-    return shlex.join(["python", sys.argv[0] or "train.py", *keep, f"resume={checkpoint}"])
+    return shlex.join([*launcher, *keep, f"resume={checkpoint}"])
 
 
 class StopRequest:
@@ -404,7 +420,8 @@ def policy_summary(task, optimizer) -> list[dict]:
     ]
 
 
-# An absolute config path: main() also runs when train.py is imported (tests, drivers).
+# An absolute config path: main() also runs when train.py is imported (tests, drivers), and
+# as dipole_torch.train (the dipole-train command), where configs/ is dipole_torch/configs/.
 @hydra.main(
     version_base=None, config_path=str(Path(__file__).parent / "configs"), config_name="config"
 )

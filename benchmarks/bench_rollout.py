@@ -3,9 +3,9 @@ viapoint task on both of its kinematics paths.
 
 Environment steps per second, linear policy included, for B parallel episodes:
 
-* ``torch``: :meth:`tasks.cartpole.CartPoleTask.evaluate` (one batched rollout, 1000 steps),
-  eager and with ``compile=True`` (its one-off compilation, ~1 min on CPU the first time,
-  is excluded from the timing: the warm-up call pays it),
+* ``torch``: :meth:`dipole_torch.tasks.cartpole.CartPoleTask.evaluate` (one batched rollout, 1000
+  steps), eager and with ``compile=True`` (its one-off compilation, ~1 min on CPU the first time, is
+  excluded from the timing: the warm-up call pays it),
 * ``gym single``: ``gymnasium.make("CartPole-v1")`` stepped B times in a Python loop
   (the policy evaluated per step in numpy),
 * ``gym SyncVectorEnv``: ``gymnasium.vector.SyncVectorEnv`` of B CartPole-v1 copies,
@@ -16,12 +16,12 @@ Gymnasium's CartPole-v1 takes discrete actions: its policy is ``action = θᵀx 
 continuous ``u = clip(θᵀx)``. The gymnasium environments reset automatically when an
 episode ends; ours freezes failed episodes (the work per step is the same either way).
 
-Viapoint (``--task viapoint``): seconds per :meth:`tasks.viapoint.ViapointTask.evaluate`
-(DS-GMR path, 140-step tracking IK on the WAM, eq. 9) of B policies drawn around θ0 with the
-task's exploration std, for the default kinematics (pytorch-kinematics' forward kinematics
-and ``chain.jacobian`` on the URDF) and the WAM's analytic DH fast path
-(``kinematics=wam_dh``), on the same θ in the same run, best of ``--repeats`` timings; the
-ratio is pytorch-kinematics' time over the DH path's.
+Viapoint (``--task viapoint``): seconds per
+:meth:`dipole_torch.tasks.viapoint.ViapointTask.evaluate` (DS-GMR path, 140-step tracking IK on the
+WAM, eq. 9) of B policies drawn around θ0 with the task's exploration std, for the default
+kinematics (pytorch-kinematics' forward kinematics and ``chain.jacobian`` on the URDF) and the WAM's
+analytic DH fast path (``kinematics=wam_dh``), on the same θ in the same run, best of ``--repeats``
+timings; the ratio is pytorch-kinematics' time over the DH path's.
 
 Run: ``python benchmarks/bench_rollout.py [--task cartpole|viapoint|all] [--threads N]
 [--device cuda]``.
@@ -35,9 +35,8 @@ import time
 import gymnasium as gym
 import numpy as np
 import torch
-
-from tasks.cartpole import CartPoleTask
-from tasks.viapoint import KINEMATICS, ViapointTask
+from dipole_torch.tasks.cartpole import CartPoleTask
+from dipole_torch.tasks.viapoint import KINEMATICS, ViapointTask
 
 THETA = np.array([0.91, 2.14, 30.9, 7.9])  # an LQR gain: long episodes, few resets
 

@@ -8,8 +8,8 @@ Per run (seed s):
 2. A sphere (8 cm, ``configs/task/viapoint_blocked.yaml``'s ``block.radius``) appears on the
    route of its best policy mean: on the viapoint that route passes at the pass time where
    the most other good routes (policy means with return >= 0.9) pass the other alternative
-   (:meth:`tasks.viapoint.ViapointTask.blocking_obstacle`). A path that enters the sphere
-   keeps ``exp(-depth / 2 cm)`` of its eq. 9 reward.
+   (:meth:`dipole_torch.tasks.viapoint.ViapointTask.blocking_obstacle`). A path that enters the
+   sphere keeps ``exp(-depth / 2 cm)`` of its eq. 9 reward.
 3. DIPOLE evaluates its K stored policy means once each in the blocked world and is told so,
    ``opt.reevaluate(task.evaluate(opt.policy_means))`` (K trials): its best policy mean
    becomes the policy it executes, and it keeps learning for 300 trials from the block.

@@ -1,5 +1,7 @@
 """dipole-torch: DIPOLE (Dirichlet-process policy learning) in PyTorch and Pyro."""
 
+from pathlib import Path
+
 from dipole_torch.dp_mixture import (
     DPMixture,
     DPMixtureState,
@@ -15,6 +17,17 @@ from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.pyro_model import InverseWishart, dp_log_joint, dp_mixture_model
 from dipole_torch.reward import RewardScale
 from dipole_torch.sampling import draw
+
+# The application around the library is dipole_torch.models, dipole_torch.tasks,
+# dipole_torch.configs and dipole_torch.train. A wheel installs them inside this package
+# (pyproject.toml maps the repository's top-level models/, tasks/, configs/ and train.py
+# there). In the source tree they stay at the top, next to this folder: searching the
+# repository root too makes the same names resolve there, whether or not (or how) the
+# project is installed in editable mode. Only there: an installed package holds tasks/.
+_root = Path(__file__).resolve().parent.parent
+if not (Path(__file__).parent / "tasks").is_dir() and (_root / "tasks" / "__init__.py").is_file():
+    __path__.append(str(_root))
+del _root
 
 __all__ = [
     "DPMixture",

@@ -101,7 +101,7 @@ class TaskConfig:
 
 @dataclass
 class MultimodalEnv:
-    _target_: str = _field("tasks.multimodal.MultimodalTask", "the task's class")
+    _target_: str = _field("dipole_torch.tasks.multimodal.MultimodalTask", "the task's class")
     device: str = _field(_DEVICE, _DEVICE_HELP)
     dim: int = _field(2, "parameter dimension D")
     num_optima: int = _field(4, "equally high optima on a circle around theta0 = 0")
@@ -119,13 +119,14 @@ class MultimodalTask(TaskConfig):
     trials: int = _field(300, "the task's trial budget (the default of the top-level trials)")
     n0: int = _field(10, "initial samples from N(theta0, sigma_start); PoWER uses the same")
     env: MultimodalEnv = field(
-        default_factory=MultimodalEnv, metadata={"help": "tasks.multimodal.MultimodalTask"}
+        default_factory=MultimodalEnv,
+        metadata={"help": "dipole_torch.tasks.multimodal.MultimodalTask"},
     )
 
 
 @dataclass
 class CartPoleEnv:
-    _target_: str = _field("tasks.cartpole.CartPoleTask", "the task's class")
+    _target_: str = _field("dipole_torch.tasks.cartpole.CartPoleTask", "the task's class")
     device: str = _field(_DEVICE, _DEVICE_HELP)
     steps: int = _field(1000, "episode horizon in steps (the paper's 1000)")
     force_limit: float = _field(10.0, "N: the force theta^T x is clipped to +-force_limit")
@@ -147,13 +148,13 @@ class CartPoleTask(TaskConfig):
     trials: int = _field(500, "the task's trial budget (the default of the top-level trials)")
     n0: int = _field(10, "initial samples from N(theta0, sigma_start); PoWER uses the same")
     env: CartPoleEnv = field(
-        default_factory=CartPoleEnv, metadata={"help": "tasks.cartpole.CartPoleTask"}
+        default_factory=CartPoleEnv, metadata={"help": "dipole_torch.tasks.cartpole.CartPoleTask"}
     )
 
 
 @dataclass
 class MountainCarEnv:
-    _target_: str = _field("tasks.mountain_car.MountainCarTask", "the task's class")
+    _target_: str = _field("dipole_torch.tasks.mountain_car.MountainCarTask", "the task's class")
     device: str = _field(_DEVICE, _DEVICE_HELP)
     steps: int = _field(100, "maximum time in steps (the paper's 100)")
     goal_position: float = _field(0.5, "the goal is x >= goal_position")
@@ -176,7 +177,8 @@ class MountainCarTask(TaskConfig):
     trials: int = _field(500, "the task's trial budget (the default of the top-level trials)")
     n0: int = _field(10, "initial samples from N(theta0, sigma_start); PoWER uses the same")
     env: MountainCarEnv = field(
-        default_factory=MountainCarEnv, metadata={"help": "tasks.mountain_car.MountainCarTask"}
+        default_factory=MountainCarEnv,
+        metadata={"help": "dipole_torch.tasks.mountain_car.MountainCarTask"},
     )
 
 
@@ -190,7 +192,7 @@ class Obstacle:
 
 @dataclass
 class ViapointEnv:
-    _target_: str = _field("tasks.viapoint.ViapointTask", "the task's class")
+    _target_: str = _field("dipole_torch.tasks.viapoint.ViapointTask", "the task's class")
     device: str = _field(_DEVICE, _DEVICE_HELP)
     urdf: str = _field(
         "models/wam/wam7.urdf", "the arm's URDF: absolute, or relative to the cwd or the project"
@@ -259,7 +261,7 @@ class ViapointTask(TaskConfig):
     trials: int = _field(300, "the task's trial budget (the default of the top-level trials)")
     n0: int = _field(30, "initial samples from N(theta0, sigma_start); PoWER uses the same")
     env: ViapointEnv = field(
-        default_factory=ViapointEnv, metadata={"help": "tasks.viapoint.ViapointTask"}
+        default_factory=ViapointEnv, metadata={"help": "dipole_torch.tasks.viapoint.ViapointTask"}
     )
     block: ViapointBlock | None = _field(
         None, "null: the layout stays; else an obstacle blocks the best route (viapoint_blocked)"

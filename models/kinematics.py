@@ -7,7 +7,7 @@ gripper fingers, are ignored) and gives, batched over configurations ``q: [B, n]
 * the end-effector position ``[B, 3]`` (m, in the base link's frame),
 * the geometric Jacobian ``[B, 6, n]`` (``chain.jacobian``: linear rows first),
 * both from one forward-kinematics pass (:meth:`ArmKinematics.position_and_jacobian`), the
-  call the tracking IK (:mod:`models.tracking`) makes at every time step.
+  call the tracking IK (:mod:`dipole_torch.models.tracking`) makes at every time step.
 
 Everything is differentiable in ``q`` (pytorch-kinematics attaches an analytical backward to
 its forward kinematics; the Jacobian is built from those poses with torch ops), so rewards of
@@ -27,6 +27,8 @@ import pytorch_kinematics as pk
 import torch
 from torch import Tensor
 
+# The repository root; in a wheel, the installed dipole_torch/ folder, which holds models/ there
+# too (pyproject.toml), so models/wam/wam7.urdf resolves either way.
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -14,16 +14,16 @@ freedom take the minimum-norm joint step.
 
 ``kinematics`` is any object with ``dof``, ``joint_lower``/``joint_upper`` ``[n]``,
 ``position_and_jacobian(q[B, n]) -> ([B, 3], [B, 3, n])``, ``forward_kinematics(q) -> [B, 3]``
-and ``clamp_to_limits``: :class:`models.kinematics.ArmKinematics` (pytorch-kinematics, any
-URDF: ``chain.jacobian``) or :class:`models.wam.WamKinematics` (the WAM's analytic DH path).
+and ``clamp_to_limits``: :class:`dipole_torch.models.kinematics.ArmKinematics`
+(pytorch-kinematics, any URDF: ``chain.jacobian``) or
+:class:`dipole_torch.models.wam.WamKinematics` (the WAM's analytic DH path).
 """
 
 from __future__ import annotations
 
 import torch
+from dipole_torch.models.kinematics import ArmKinematics
 from torch import Tensor
-
-from models.kinematics import ArmKinematics
 
 
 def damped_least_squares_step(jacobian: Tensor, error: Tensor, damping: float) -> Tensor:

@@ -6,15 +6,14 @@ import functools
 import math
 
 import torch
-from torch import Tensor
-
-from tasks.control import (
+from dipole_torch.tasks.control import (
     ControlTask,
     check_positive_int,
     compiled,
     single_threaded,
     start_distribution,
 )
+from torch import Tensor
 
 __all__ = ["CartPoleTask"]
 
@@ -35,7 +34,8 @@ class CartPoleTask(ControlTask):
 
     :meth:`evaluate` runs one episode per row of ``theta: [B, 4]`` as a single batched torch
     rollout (a loop over time steps only). The same :meth:`step` and :meth:`step_reward` drive
-    the gymnasium environment ``dipole/CartPole-v0`` (:class:`tasks.gym_envs.CartPoleEnv`).
+    the gymnasium environment ``dipole/CartPole-v0``
+    (:class:`dipole_torch.tasks.gym_envs.CartPoleEnv`).
 
     ## Action Space
 

@@ -6,9 +6,8 @@ from __future__ import annotations
 import contextlib
 
 import torch
+from dipole_torch.tasks.base import EpisodicTask
 from torch import Tensor
-
-from tasks.base import EpisodicTask
 
 
 class ControlTask(EpisodicTask):

@@ -1,14 +1,16 @@
-"""Gymnasium environments for the classic-control tasks, registered on ``import tasks``.
+"""Gymnasium environments for the classic-control tasks, registered on
+``import dipole_torch.tasks``.
 
 * ``gymnasium.make("dipole/CartPole-v0")`` -> :class:`CartPoleEnv`
 * ``gymnasium.make("dipole/MountainCar-v0")`` -> :class:`MountainCarEnv`
 
 Each environment steps a batch of one state through its task's own torch physics
-(:meth:`tasks.cartpole.CartPoleTask.step`, :meth:`tasks.mountain_car.MountainCarTask.step`):
-there is no second copy of the dynamics, and a policy run in the environment earns the same
-undiscounted return as the batched :meth:`~tasks.base.EpisodicTask.evaluate` from the same
-start (pass it with ``reset(options={"initial_state": ...})``). Keyword arguments of
-``gymnasium.make`` go to the task's constructor (``steps``, ``force_limit``, ``dtype``, ...).
+(:meth:`dipole_torch.tasks.cartpole.CartPoleTask.step`,
+:meth:`dipole_torch.tasks.mountain_car.MountainCarTask.step`): there is no second copy of the
+dynamics, and a policy run in the environment earns the same undiscounted return as the batched
+:meth:`~dipole_torch.tasks.base.EpisodicTask.evaluate` from the same start (pass it with
+``reset(options={"initial_state": ...})``). Keyword arguments of ``gymnasium.make`` go to the task's
+constructor (``steps``, ``force_limit``, ``dtype``, ...).
 """
 
 from __future__ import annotations
@@ -18,10 +20,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+from dipole_torch.tasks.cartpole import CartPoleTask
+from dipole_torch.tasks.mountain_car import MountainCarTask
 from gymnasium import spaces
-
-from tasks.cartpole import CartPoleTask
-from tasks.mountain_car import MountainCarTask
 
 __all__ = ["CartPoleEnv", "MountainCarEnv", "register_envs"]
 
@@ -76,7 +77,7 @@ class _TaskEnv(gym.Env):
 
 
 class CartPoleEnv(_TaskEnv):
-    """:class:`tasks.cartpole.CartPoleTask` as a gymnasium environment.
+    """:class:`dipole_torch.tasks.cartpole.CartPoleTask` as a gymnasium environment.
 
     * Action: ``Box(-force_limit, force_limit, (1,))``, the force in newtons (clipped).
     * Observation: ``[x, ẋ, φ, φ̇]`` (float32), bounds as gymnasium's ``CartPole-v1``.
@@ -115,7 +116,7 @@ class CartPoleEnv(_TaskEnv):
 
 
 class MountainCarEnv(_TaskEnv):
-    """:class:`tasks.mountain_car.MountainCarTask` as a gymnasium environment.
+    """:class:`dipole_torch.tasks.mountain_car.MountainCarTask` as a gymnasium environment.
 
     * Action: ``Discrete(2)``: ``0`` full backward (``u = -4``), ``1`` full forward (``+4``).
     * Observation: ``[x, ẋ]`` (float32) in ``[-1.5, 1.5] × [-0.07, 0.07]``.
@@ -152,8 +153,8 @@ class MountainCarEnv(_TaskEnv):
 def register_envs() -> None:
     """Register ``dipole/CartPole-v0`` and ``dipole/MountainCar-v0`` (idempotent)."""
     for env_id, entry_point in (
-        ("dipole/CartPole-v0", "tasks.gym_envs:CartPoleEnv"),
-        ("dipole/MountainCar-v0", "tasks.gym_envs:MountainCarEnv"),
+        ("dipole/CartPole-v0", "dipole_torch.tasks.gym_envs:CartPoleEnv"),
+        ("dipole/MountainCar-v0", "dipole_torch.tasks.gym_envs:MountainCarEnv"),
     ):
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point=entry_point)

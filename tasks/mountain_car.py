@@ -6,15 +6,14 @@ import functools
 import math
 
 import torch
-from torch import Tensor
-
-from tasks.control import (
+from dipole_torch.tasks.control import (
     ControlTask,
     check_positive_int,
     compiled,
     single_threaded,
     start_distribution,
 )
+from torch import Tensor
 
 __all__ = ["MountainCarTask"]
 
@@ -39,7 +38,7 @@ class MountainCarTask(ControlTask):
 
     :meth:`evaluate` runs one episode per row of ``theta: [B, 4]`` as a single batched torch
     rollout; the same :meth:`step` drives the gymnasium environment ``dipole/MountainCar-v0``
-    (:class:`tasks.gym_envs.MountainCarEnv`).
+    (:class:`dipole_torch.tasks.gym_envs.MountainCarEnv`).
 
     ## Action Space
 
@@ -83,7 +82,8 @@ class MountainCarTask(ControlTask):
       ``[4]``; ``sigma_start = diag(exploration_std²)`` (default ``[1, 1, 10, 100]``).
     * ``default_seed``: seed of the start used when ``generator`` is ``None`` (0).
     * ``compile``, ``chunk``: run the rollout in chunks of ``chunk`` (10) steps, each through
-      ``torch.compile`` when ``compile`` is true (as :class:`tasks.cartpole.CartPoleTask`).
+      ``torch.compile`` when ``compile`` is true (as
+      :class:`dipole_torch.tasks.cartpole.CartPoleTask`).
     * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32).
 
     ## Deviations from the paper

@@ -5,9 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from dipole_torch.tasks.base import EpisodicTask
 from torch import Tensor
-
-from tasks.base import EpisodicTask
 
 
 class MultimodalTask(EpisodicTask):

@@ -8,13 +8,12 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
+from dipole_torch.models.ds_gmr import DSGMR
+from dipole_torch.models.kinematics import ArmKinematics, resolve_urdf_path
+from dipole_torch.models.tracking import solve_position_ik, track_path
+from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
+from dipole_torch.tasks.base import EpisodicTask
 from torch import Tensor
-
-from models.ds_gmr import DSGMR
-from models.kinematics import ArmKinematics, resolve_urdf_path
-from models.tracking import solve_position_ik, track_path
-from models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
-from tasks.base import EpisodicTask
 
 __all__ = ["KINEMATICS", "ViapointTask"]
 
@@ -35,20 +34,21 @@ class ViapointTask(EpisodicTask):
     Any serial-chain arm given as a URDF can take the WAM's place (``urdf``, ``end_effector``,
     ``initial_joints`` and a layout it can reach; see the README's "Use your own arm").
 
-    A policy is a DS-GMR trajectory (:class:`models.ds_gmr.DSGMR`, Calinon et al. 2012): a
-    critically damped virtual spring-damper ``ẍ = K_P (x̂(t) − x) − K_V ẋ`` pulls the tip
-    towards the attractor path ``x̂(t)`` that Gaussian mixture regression retrieves from a GMM
-    over ``[t, x]`` with ``K = len(pass_times)`` learned components and, with
+    A policy is a DS-GMR trajectory (:class:`dipole_torch.models.ds_gmr.DSGMR`, Calinon et al.
+    2012): a critically damped virtual spring-damper ``ẍ = K_P (x̂(t) − x) − K_V ẋ`` pulls the
+    tip towards the attractor path ``x̂(t)`` that Gaussian mixture regression retrieves from a
+    GMM over ``[t, x]`` with ``K = len(pass_times)`` learned components and, with
     ``end_at_target`` (default), one fixed final component at the target. The policy
     parameters are the learned components' spatial centres, ``θ = [μ_1^x, ..., μ_K^x]``
     (``D = 3K = 9``). The desired task-space path is then tracked by the simulated arm
-    (:func:`models.tracking.track_path`: damped-least-squares differential IK on the arm's
-    position Jacobian, joint limits enforced), and the reward is computed on the end-effector
-    path the arm actually makes. The kinematics (forward kinematics and Jacobian, batched over
-    rollouts) are pytorch-kinematics' (:class:`models.kinematics.ArmKinematics`,
-    ``chain.jacobian``) by default; for the bundled WAM, ``kinematics="wam_dh"`` selects the
-    analytic DH fast path (:class:`models.wam.WamKinematics`), which gives the same paths to
-    float rounding.
+    (:func:`dipole_torch.models.tracking.track_path`: damped-least-squares differential IK on
+    the arm's position Jacobian, joint limits enforced), and the reward is computed on the
+    end-effector path the arm actually makes. The kinematics (forward kinematics and Jacobian,
+    batched over rollouts) are pytorch-kinematics'
+    (:class:`dipole_torch.models.kinematics.ArmKinematics`, ``chain.jacobian``) by default; for
+    the bundled WAM, ``kinematics="wam_dh"`` selects the analytic DH fast path
+    (:class:`dipole_torch.models.wam.WamKinematics`), which gives the same paths to float
+    rounding.
 
     :meth:`evaluate` rolls out ``theta: [B, 9]`` as one batched torch computation (loops over
     time only), differentiable in ``theta`` on either kinematics path.
@@ -147,9 +147,9 @@ class ViapointTask(EpisodicTask):
     ## Deviations from the paper
 
     * Eq. 9 as printed lacks the norm; we use the Euclidean distance ``‖x(t_i) − x_i^v‖``.
-    * The paper simulates the arm with the MATLAB Robotics Toolbox; we use a kinematic URDF of
-      the WAM built from its public DH table (:mod:`models.wam`) and pytorch-kinematics. Only
-      kinematics is simulated (no dynamics or torque limits): the arm follows the desired path
+    * The paper simulates the arm with the MATLAB Robotics Toolbox; we use a kinematic URDF of the
+      WAM built from its public DH table (:mod:`dipole_torch.models.wam`) and pytorch-kinematics.
+      Only kinematics is simulated (no dynamics or torque limits): the arm follows the desired path
       unless joint limits, singularities or the workspace boundary prevent it.
     * The paper learns "the position and the activation weights of the attractors" but counts
       only the 9 attractor coordinates as policy parameters; the activation weights (the GMM's

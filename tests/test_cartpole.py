@@ -6,8 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-
-from tasks.cartpole import CartPoleTask
+from dipole_torch.tasks.cartpole import CartPoleTask
 
 LQR_GAIN = [0.91, 2.14, 30.9, 7.9]  # discrete LQR, Q = diag(1, 1, 10, 1), R = 1
 

@@ -6,8 +6,7 @@ import math
 
 import pytest
 import torch
-
-from models.ds_gmr import DSGMR
+from dipole_torch.models.ds_gmr import DSGMR
 
 F64 = torch.float64
 

@@ -1,14 +1,13 @@
 """The gymnasium environments: registration, env checker, same returns as the batched tasks."""
 
+import dipole_torch.tasks  # noqa: F401  (registers the environments)
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from dipole_torch.tasks.cartpole import CartPoleTask
+from dipole_torch.tasks.mountain_car import MountainCarTask
 from gymnasium.utils.env_checker import check_env
-
-import tasks  # noqa: F401  (registers the environments)
-from tasks.cartpole import CartPoleTask
-from tasks.mountain_car import MountainCarTask
 
 ENV_IDS = ["dipole/CartPole-v0", "dipole/MountainCar-v0"]
 

@@ -4,8 +4,7 @@ import math
 
 import pytest
 import torch
-
-from tasks.mountain_car import MountainCarTask
+from dipole_torch.tasks.mountain_car import MountainCarTask
 
 PUMPING = [1.0, 1.0, -10.0, -100.0]  # reaches the goal within 60 steps from every start
 

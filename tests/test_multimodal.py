@@ -2,9 +2,9 @@
 
 import pytest
 import torch
+from dipole_torch.tasks.multimodal import MultimodalTask
 
 from dipole_torch import Dipole, Power
-from tasks.multimodal import MultimodalTask
 
 SEEDS = range(6)
 BUDGET = 300  # trials

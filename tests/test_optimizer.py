@@ -4,9 +4,9 @@ import math
 
 import pytest
 import torch
+from dipole_torch.tasks.multimodal import MultimodalTask
 
 from dipole_torch import Dipole, GaussianMixture, Power
-from tasks.multimodal import MultimodalTask
 
 F64 = torch.float64
 

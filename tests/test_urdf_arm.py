@@ -8,9 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from models.kinematics import ArmKinematics
-from tasks.viapoint import ViapointTask
+from dipole_torch.models.kinematics import ArmKinematics
+from dipole_torch.tasks.viapoint import ViapointTask
 
 F64 = torch.float64
 
@@ -54,7 +53,7 @@ name: viapoint
 trials: 250
 n0: 20
 env:
-  _target_: tasks.viapoint.ViapointTask
+  _target_: dipole_torch.tasks.viapoint.ViapointTask
   device: cpu
   urdf: {urdf}
   end_effector: tool

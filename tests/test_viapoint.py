@@ -9,10 +9,9 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from models.kinematics import ArmKinematics
-from models.wam import WamKinematics
-from tasks.viapoint import ViapointTask
+from dipole_torch.models.kinematics import ArmKinematics
+from dipole_torch.models.wam import WamKinematics
+from dipole_torch.tasks.viapoint import ViapointTask
 
 F64 = torch.float64
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "task" / "viapoint.yaml"

@@ -6,9 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
-from models.kinematics import ArmKinematics
-from models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
+from dipole_torch.models.kinematics import ArmKinematics
+from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
 
 # Standard DH table of the WAM 7-DOF (Barrett WAM Arm User's Manual): a, alpha, d per joint.
 DH_A = np.array([0.0, 0.0, 0.045, -0.045, 0.0, 0.0, 0.0])

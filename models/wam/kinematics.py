@@ -21,8 +21,8 @@ with joint limits (Barrett's, as in the ROS ``wam_description``) lower
 rad. The base frame is the DH frame 0 (at the shoulder, z up); the end effector ``wam_tool`` is
 the tool flange, 0.06 m past the wrist centre. Kinematics only: no masses, no geometry.
 
-The viapoint task runs any URDF through pytorch-kinematics (:class:`models.kinematics.
-ArmKinematics`), the WAM included (``kinematics: pytorch_kinematics``, the default).
+The viapoint task runs any URDF through pytorch-kinematics (:class:`dipole_torch.models.
+kinematics.ArmKinematics`), the WAM included (``kinematics: pytorch_kinematics``, the default).
 :class:`WamKinematics` is the opt-in fast path for this arm (``kinematics: wam_dh``): the same
 interface, with positions and position Jacobians computed from the DH table directly
 (``tests/test_wam.py`` checks it against the pytorch-kinematics chain to 1e-7 m). Its speed-up
@@ -36,9 +36,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
+from dipole_torch.models.kinematics import ArmKinematics
 from torch import Tensor
-
-from models.kinematics import ArmKinematics
 
 URDF_PATH = Path(__file__).with_name("wam7.urdf")
 END_EFFECTOR_LINK = "wam_tool"
@@ -51,8 +50,8 @@ DH_D = (0.0, 0.0, 0.55, 0.0, 0.3, 0.0, 0.06)  # m
 class WamKinematics(ArmKinematics):
     """The WAM's kinematics with the analytic DH fast path, batched over configurations.
 
-    An :class:`~models.kinematics.ArmKinematics` of ``wam7.urdf`` (base ``wam_base``, end
-    effector ``wam_tool``) whose :meth:`forward_kinematics` and :meth:`position_and_jacobian`
+    An :class:`~dipole_torch.models.kinematics.ArmKinematics` of ``wam7.urdf`` (base ``wam_base``,
+    end effector ``wam_tool``) whose :meth:`forward_kinematics` and :meth:`position_and_jacobian`
     use the DH table instead of the pytorch-kinematics chain; :meth:`jacobian` (6 rows) and
     :attr:`chain` stay pytorch-kinematics'.
 
