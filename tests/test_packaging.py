@@ -1,0 +1,159 @@
+"""The wheel: one top-level package (dipole_torch, plus a module in Hydra's hydra_plugins
+namespace), the configs and train.py inside it, a ``dipole-train`` command that trains from
+a project holding its own ``models/`` and ``tasks/`` packages.
+
+The wheel is built offline from a copy of the sources (a stale ``build/`` or egg-info of the
+checkout cannot leak into it) and installed with ``pip install --target``; the check runs in
+``python -S``, so the editable install's finder (a ``.pth`` file of site-packages) is not
+loaded and only the wheel provides ``dipole_torch``.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import zipfile
+from pathlib import Path
+
+import torch
+from test_train import train
+
+ROOT = Path(__file__).resolve().parents[1]
+# Not part of a build: environments, outputs, earlier builds, and folders no wheel ships.
+SKIP = {".git", ".venv", ".ci-venv", "build", "dist", "outputs", "multirun", "docs"}
+SKIP |= {"tests", "benchmarks", "__pycache__", ".pytest_cache", ".ruff_cache"}
+
+
+def _pip(*args, cwd):
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", *args, "--no-deps", "--no-index", "--quiet"],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def _build_wheel(tmp_path: Path) -> Path:
+    source = tmp_path / "source"
+    shutil.copytree(
+        ROOT,
+        source,
+        ignore=lambda folder, names: [
+            n for n in names if n in SKIP or n.endswith(".egg-info") or n.endswith(".pyc")
+        ],
+    )
+    _pip("wheel", "--no-build-isolation", "-w", str(tmp_path / "wheel"), str(source), cwd=tmp_path)
+    (wheel,) = (tmp_path / "wheel").glob("dipole_torch-*.whl")
+    return wheel
+
+
+# Run with python -S from a project of the user's: '' (its directory) first on sys.path, then
+# the wheel's install target, then site-packages for the dependencies.
+CHECK = """
+import json, sys
+target, site_packages, run_dir = sys.argv[1:4]
+sys.path[1:1] = [target, site_packages]
+
+import models, tasks  # the user's own packages
+assert models.OWNER == tasks.OWNER == "user", (models.__file__, tasks.__file__)
+
+import gymnasium as gym
+import dipole_torch
+import dipole_torch.tasks.viapoint
+from dipole_torch.tasks.viapoint import ViapointTask
+
+assert dipole_torch.__path__ == [target + "/dipole_torch"], dipole_torch.__path__
+assert dipole_torch.tasks.viapoint.__file__.startswith(target), dipole_torch.tasks.__file__
+for name in ("dipole/CartPole-v0", "dipole/MountainCar-v0"):
+    env = gym.make(name)
+    env.reset(seed=0)
+    env.step(env.action_space.sample())
+assert ViapointTask().theta0.shape == (9,)  # the bundled URDF, found inside the package
+
+from importlib.metadata import entry_points
+(command,) = entry_points(group="console_scripts", name="dipole-train")
+main = command.load()
+sys.argv = ["dipole-train", "task=viapoint", "trials=30", "progress=false", "figure_every=0",
+            "hydra.run.dir=" + run_dir]
+main()
+assert models.OWNER == tasks.OWNER == "user"
+assert not [m for m in sys.modules if m.startswith(("models.", "tasks."))]
+print(json.dumps({"command": command.value, "train": sys.modules[main.__module__].__file__}))
+"""
+
+
+def test_wheel_installs_one_package_and_its_command_trains(tmp_path):
+    wheel = _build_wheel(tmp_path)
+    names = zipfile.ZipFile(wheel).namelist()
+    top_level = {
+        name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")
+    }
+    assert top_level == {"dipole_torch", "hydra_plugins"}, sorted(top_level)
+    assert "hydra_plugins/dipole_torch_configs/__init__.py" in names
+    assert "dipole_torch/train.py" in names
+    assert "dipole_torch/models/wam/wam7.urdf" in names
+    configs = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "configs").rglob("*.yaml"))
+    assert configs and all(f"dipole_torch/{c}" in names for c in configs), configs
+    for package in ("models", "models/wam", "tasks"):
+        sources = {p.name for p in (ROOT / package).glob("*.py")}
+        assert all(f"dipole_torch/{package}/{s}" in names for s in sources), package
+    (entry_points,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
+    text = zipfile.ZipFile(wheel).read(entry_points).decode()
+    assert "dipole-train = dipole_torch.train:main" in text, text
+
+    target = tmp_path / "installed"
+    _pip("install", "--target", str(target), str(wheel), cwd=tmp_path)
+    project = tmp_path / "project"  # a user's project with its own models/ and tasks/
+    for package in ("models", "tasks"):
+        (project / package).mkdir(parents=True)
+        (project / package / "__init__.py").write_text('OWNER = "user"\n')
+    run_dir = tmp_path / "run"
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    site_packages = sysconfig.get_paths()["purelib"]
+    result = subprocess.run(
+        [sys.executable, "-S", "-c", CHECK, str(target), site_packages, str(run_dir)],
+        cwd=project,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    checked = json.loads(result.stdout.strip().splitlines()[-1])
+    assert checked == {
+        "command": "dipole_torch.train:main",
+        "train": str(target / "dipole_torch" / "train.py"),
+    }
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["task"] == "viapoint" and results["trials"] == 30 and results["policies"]
+    assert (run_dir / "train.log").read_text()  # Hydra's job logging, named after train.py
+
+
+def test_a_checkpoint_naming_the_old_task_module_resumes(tmp_path):
+    """Checkpoints written before tasks/ became dipole_torch.tasks name ``tasks.<module>``."""
+    run = tmp_path / "run"
+    common = ("task=multimodal", "algo=power", "figure_every=0")
+    train(*common, "trials=20", f"hydra.run.dir={run}")
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert "_target_: dipole_torch.tasks.multimodal.MultimodalTask" in checkpoint["config"]
+    checkpoint["config"] = checkpoint["config"].replace("dipole_torch.tasks.", "tasks.")
+    torch.save(checkpoint, run / "checkpoint.pt")
+    train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
+    assert json.loads((run / "results.json").read_text())["trials"] == 40
+
+
+def test_the_resume_command_names_the_command_that_ran(monkeypatch):
+    from train import resume_command
+
+    monkeypatch.setattr(sys, "argv", ["/env/bin/dipole-train", "task=viapoint"])
+    assert resume_command(["task=viapoint"], "/r/checkpoint.pt") == (
+        "dipole-train task=viapoint resume=/r/checkpoint.pt"
+    )
+    monkeypatch.setattr(sys, "argv", ["train.py", "task=viapoint"])
+    assert resume_command(["task=viapoint"], "/r/checkpoint.pt") == (
+        "python train.py task=viapoint resume=/r/checkpoint.pt"
+    )
