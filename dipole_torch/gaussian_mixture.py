@@ -279,12 +279,16 @@ class GaussianMixture(TorchDistribution):
         return cls(state["weights"], state["means"], state["covariances"])
 
     def to(self, *args, **kwargs) -> GaussianMixture:
-        """A copy with parameters moved/cast as ``Tensor.to(*args, **kwargs)``."""
-        return self._derived(
+        """A copy with parameters moved/cast as ``Tensor.to(*args, **kwargs)`` (a Cholesky
+        factor already computed is cast with them, not recomputed in the new dtype)."""
+        mixture = self._derived(
             self.weights.to(*args, **kwargs),
             self.means.to(*args, **kwargs),
             self.covariances.to(*args, **kwargs),
         )
+        if self._scale_tril is not None:
+            mixture._scale_tril = self._scale_tril.to(*args, **kwargs)
+        return mixture
 
     def __repr__(self) -> str:
         return (

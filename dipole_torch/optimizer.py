@@ -391,10 +391,17 @@ class PolicySearch:
     @property
     def policies(self) -> GaussianMixture:
         """The current policies as a mixture over θ: component k is N(θ_k, Σ_k), weighted by
-        the number of kept samples it owns."""
-        return GaussianMixture(
+        the number of kept samples it owns, in ``theta0``'s dtype.
+
+        The covariances are factorised in float64 before the cast: a converged policy's
+        exploration (stds 1e-3 of Σ_start's, shaped by the rank-one updates) can be too
+        ill-conditioned for a float32 Cholesky."""
+        mixture = GaussianMixture(
             self._policy_weights(), self.policy_means, self.policy_covariances, validate_args=False
         )
+        if self.dtype != DTYPE:
+            mixture.scale_tril  # noqa: B018 (factorised here, carried by .to())
+        return mixture.to(self.dtype)
 
     def _policy_weights(self) -> Tensor:
         """``[K]`` number of kept samples each policy owns (at least 1)."""

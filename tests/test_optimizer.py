@@ -519,3 +519,26 @@ def test_reevaluate_rejects_bad_returns_and_leaves_the_optimizer_untouched(cls):
                 assert torch.equal(value, after[key]), key
     opt.reevaluate(task.evaluate(opt.policy_means))
     run(opt, task, opt.trials + 20)
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
+def test_policies_come_in_the_dtype_of_theta(cls):
+    task = MultimodalTask()
+    opt = cls(
+        task.theta0.float(),
+        task.sigma_start.float(),
+        n0=10,
+        reward_range=task.reward_range,
+        generator=torch.Generator().manual_seed(0),
+    )
+    run(opt, task, 30)
+    assert opt.policies.dtype == torch.float32 and opt.policies.sample((3,)).dtype == torch.float32
+    # A converged, ill-conditioned exploration: factorised in float64, then cast.
+    eigenvalues = torch.logspace(-14, -2, opt.dim, dtype=F64)
+    noise = torch.randn(opt.dim, opt.dim, dtype=F64, generator=torch.Generator().manual_seed(1))
+    rotation = torch.linalg.qr(noise)[0]
+    opt.policy_covariances = (rotation * eigenvalues) @ rotation.T + torch.zeros(
+        opt.num_policies, 1, 1, dtype=F64
+    )
+    policies = opt.policies
+    assert torch.isfinite(policies.log_prob(policies.sample((4,)))).all()
