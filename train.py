@@ -32,12 +32,10 @@ Config: ``configs/*.yaml`` extend the structured configs of ``dipole_torch.confi
 value of the wrong type fails when the config is composed, naming its key;
 ``python train.py --help`` lists every field. ``check_config`` checks what types cannot say.
 
-Trial budget: ``trials`` is never exceeded. A batch (one sample per active policy, plus
-DIPOLE's scouts and probes) is evaluated whole or not at all: PoWER (batches of one after the
-first ``n0``) reaches the budget exactly; DIPOLE stops at its last whole batch within it,
-taking back the ask that would cross it, so a resumed run with a larger budget makes the
-draws an uninterrupted one would have made. (An optimizer whose ``tell`` took the first rows
-of an ask would make the budget exact for DIPOLE too.)
+Trial budget: a run evaluates exactly ``trials``. The batch (one sample per active policy,
+plus DIPOLE's scouts and probes) that would cross it is cut to its first rows (``tell``
+takes the first rows of an ask); the checkpoint keeps the run before that batch, so a resume
+with a larger budget makes the draws an uninterrupted run would have made.
 
 Reliability (README's "Reliability"): every output file is written under a temporary name
 and moved into place (``dipole_torch.checkpoint``), so ``kill -9`` at any moment leaves the
@@ -327,14 +325,12 @@ def log_iteration(writer: SummaryWriter, optimizer, iteration: int) -> dict[str,
     return row
 
 
-def ask_within_budget(optimizer, budget: int, say_why: bool = True):
-    """The next batch, or ``None`` when evaluating it would take the run past ``budget`` trials
-    (``say_why``: log it).
+def ask_within_budget(optimizer, budget: int):
+    """The next batch, or ``None`` when evaluating it would take the run past ``budget`` trials.
 
     A batch crossing the budget is taken back: the optimizer is restored to its state before
-    the ask (its generator included), so a run resumed with a larger budget makes the draws an
-    uninterrupted one would have made. (``tell`` takes whole asks only: PoWER's batches of one
-    reach the budget exactly, DIPOLE's stop within a batch of it.)"""
+    the ask (its generator included), so that asking again proposes the same batch, and a run
+    resumed with a larger budget makes the draws an uninterrupted one would have made."""
     generator_state = optimizer.generator.get_state()
     theta = optimizer.ask()
     if optimizer.trials + theta.shape[0] <= budget:
@@ -342,11 +338,6 @@ def ask_within_budget(optimizer, budget: int, say_why: bool = True):
     state = optimizer.state_dict()
     state.update(generator=generator_state, pending=None, pending_owner=None)
     optimizer.load_state_dict(state)
-    if say_why:
-        log.info(
-            f"stopping at {optimizer.trials} of {budget} trials: the next batch has "
-            f"{theta.shape[0]} trials and would exceed the budget"
-        )
     return None
 
 
@@ -487,12 +478,11 @@ def main(cfg: DictConfig) -> dict:
         )
 
     bar = tqdm(total=cfg.trials, initial=optimizer.trials, unit="trial", disable=not cfg.progress)
+    last_batch_cut = False
     with StopRequest() as stop:
         while optimizer.trials < cfg.trials and stop.signum is None:
             block_due = block is not None and blocked is None and block.trial < cfg.trials
-            theta = ask_within_budget(
-                optimizer, block.trial if block_due else cfg.trials, say_why=not block_due
-            )
+            theta = ask_within_budget(optimizer, block.trial if block_due else cfg.trials)
             if theta is None and block_due:  # the next batch would cross the block
                 trials = optimizer.trials
                 if trials + optimizer.num_policies > cfg.trials:
@@ -503,7 +493,16 @@ def main(cfg: DictConfig) -> dict:
                 bar.update(optimizer.trials - trials)
                 continue
             if theta is None:
-                break
+                # The batch crossing the budget: its first rows end the run at the budget
+                # exactly. The checkpoint keeps the run before it, so that a resume with a
+                # larger budget makes the draws of an uninterrupted run.
+                save_checkpoint()
+                theta = optimizer.ask()  # the same batch: ask_within_budget restored the state
+                log.info(
+                    f"the last batch is cut to its first {cfg.trials - optimizer.trials} of "
+                    f"{theta.shape[0]} rows, to end at {cfg.trials} trials"
+                )
+                theta, last_batch_cut = theta[: cfg.trials - optimizer.trials], True
             rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
             optimizer.tell(theta, rewards)
             row = log_iteration(writer, optimizer, len(history))
@@ -514,10 +513,11 @@ def main(cfg: DictConfig) -> dict:
                 figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
                 if figure is not None:
                     writer.add_figure("policies/figure", figure, optimizer.trials)
-            if len(history) % cfg.checkpoint_every == 0:
+            if len(history) % cfg.checkpoint_every == 0 and not last_batch_cut:
                 save_checkpoint()
         bar.close()
-        save_checkpoint()
+        if not last_batch_cut:
+            save_checkpoint()
         if stop.signum is not None:
             writer.close()
             name = signal.Signals(stop.signum).name

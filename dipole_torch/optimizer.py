@@ -211,15 +211,24 @@ class PolicySearch:
         """Report the returns of the parameters from the last :meth:`ask`.
 
         Args:
-            theta: ``[B, D]`` the asked parameters (row i as asked).
-            rewards: ``[B]`` their returns; all finite (a NaN or inf raises before anything
-                changes), inside ``reward_range`` when a fixed one was given.
+            theta: ``[B, D]`` the asked parameters (row i as asked), or only the first
+                ``n < B`` rows of the ask (e.g. to end a run exactly at a trial budget; any
+                hill-valley tests still queued are then forgotten, and ``last_rewards`` holds
+                the told policies' returns only).
+            rewards: ``[B]`` (or ``[n]``) their returns; all finite (a NaN or inf raises
+                before anything changes), inside ``reward_range`` when a fixed one was given.
 
         If anything raises, the optimizer is left exactly as it was before the call.
         """
         if self._pending is None:
             raise RuntimeError("tell() called without a preceding ask()")
-        check_matrix_shape(theta, tuple(self._pending.shape), "theta")
+        asked, d = self._pending.shape
+        check_matrix_shape(theta, (-1, d), "theta")
+        if not 1 <= theta.shape[0] <= asked:
+            raise ValueError(
+                f"theta has {theta.shape[0]} rows: tell() takes the {asked} rows of the last "
+                f"ask, or its first n (1 <= n <= {asked})"
+            )
         check_finite(theta, "theta")
         rewards = check_rewards(torch.as_tensor(rewards), theta.shape[0]).to(self.device)
         self.reward_scale.validate(rewards)  # before any state changes
@@ -232,7 +241,9 @@ class PolicySearch:
 
     def _tell(self, theta: Tensor, rewards: Tensor) -> None:
         first = not self.started
-        owner = self._pending_owner
+        owner = self._pending_owner[: theta.shape[0]]
+        if owner.shape[0] < self._pending_owner.shape[0]:
+            self._forget_probes()  # a test whose probe was not told cannot be judged
         self._pending = self._pending_owner = None
         self._before_append(owner, theta, rewards)
         self.policy_samples += int((owner >= 0).sum()) if not first else 0
@@ -305,11 +316,14 @@ class PolicySearch:
         self._best_theta = self.policy_means[best].clone()
         self._best_reward = float(returns[best])
         self._pending = self._pending_owner = None
-        # Queued hill-valley tests compare returns of the old world.
+        self._forget_probes()  # queued hill-valley tests compare returns of the old world
+        self._after_reevaluation(hurt)
+
+    def _forget_probes(self) -> None:
+        """Empty the queues of hill-valley tests (candidates and pairs) and their probes."""
         for name in self._TENSORS:
             if name.startswith(("candidate_", "pair_", "probe_")):
                 setattr(self, name, getattr(self, name)[:0])
-        self._after_reevaluation(hurt)
 
     def _after_reevaluation(self, hurt: Tensor) -> None:
         """Restart the policies ``hurt`` ``[K]`` by the change (see :meth:`reevaluate`)."""

@@ -123,17 +123,20 @@ def test_power_evaluates_exactly_the_trial_budget(tmp_path):
     assert events.Scalars("reward/best")[-1].step == 37
 
 
-def test_dipole_stops_at_the_last_whole_batch_within_the_budget(finished_run):
-    """The run ends where the next batch would cross the budget; that batch was taken back:
-    the checkpoint's optimizer, asked again, proposes it (with the same draws)."""
-    results = json.loads((finished_run / "results.json").read_text())
-    assert results["trial_budget"] == 80
-    trials = results["trials"]
-    assert 80 - 10 < trials <= 80  # within a batch (at most 8 policies + scouts + probes)
-    checkpoint = torch.load(finished_run / "checkpoint.pt", weights_only=True)
-    assert checkpoint["optimizer"]["trials"] == trials
-    assert checkpoint["optimizer"]["pending"] is None  # the crossing ask was taken back
-    cfg = compose_config("trials=80")
+def test_dipole_evaluates_exactly_the_trial_budget(tmp_path):
+    """The batch that would cross the budget is cut to its first rows; the checkpoint keeps
+    the run before it: its optimizer, asked again, proposes that whole batch. (This seed's
+    batches end at 78 and 80 trials: a budget of 79 cuts the last one.)"""
+    train("task=multimodal", "algo=dipole", "seed=0", "trials=79", f"hydra.run.dir={tmp_path}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["trial_budget"] == 79
+    assert results["trials"] == 79 and results["history"]["trials"][-1] == 79
+    assert "the last batch is cut to its first 1 of 2 rows" in (tmp_path / "train.log").read_text()
+    checkpoint = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    trials = checkpoint["optimizer"]["trials"]
+    assert trials == 78
+    assert checkpoint["optimizer"]["pending"] is None
+    cfg = compose_config("trials=79")
     task = instantiate(cfg.task.env)
     optimizer = instantiate(
         cfg.algo.optimizer,
@@ -144,7 +147,21 @@ def test_dipole_stops_at_the_last_whole_batch_within_the_budget(finished_run):
     )
     assert isinstance(optimizer, Dipole)
     optimizer.load_state_dict(checkpoint["optimizer"])
-    assert trials + optimizer.ask().shape[0] > 80
+    assert trials + optimizer.ask().shape[0] > 79
+    # A resume with a larger budget makes the draws of an uninterrupted run.
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    train("task=multimodal", "algo=dipole", "seed=0", "trials=90", f"hydra.run.dir={straight}")
+    train(
+        "task=multimodal",
+        "algo=dipole",
+        "seed=0",
+        "trials=90",
+        f"resume={tmp_path / 'checkpoint.pt'}",
+        f"hydra.run.dir={resumed}",
+    )
+    a = json.loads((straight / "results.json").read_text())
+    b = json.loads((resumed / "results.json").read_text())
+    assert a["history"] == b["history"] and a["best_theta"] == b["best_theta"]
 
 
 def test_resume_continues_exactly(finished_run, tmp_path):
