@@ -18,10 +18,10 @@ def run(opt, task, trials):
     return opt
 
 
-def make(cls, task, seed=0):
+def make(cls, task, seed=0, dtype=None):
     return cls(
-        task.theta0,
-        task.sigma_start,
+        task.theta0.to(dtype),
+        task.sigma_start.to(dtype),
         n0=10,
         reward_range=task.reward_range,
         generator=torch.Generator().manual_seed(seed),
@@ -524,14 +524,7 @@ def test_reevaluate_rejects_bad_returns_and_leaves_the_optimizer_untouched(cls):
 @pytest.mark.parametrize("cls", [Dipole, Power])
 def test_policies_come_in_the_dtype_of_theta(cls):
     task = MultimodalTask()
-    opt = cls(
-        task.theta0.float(),
-        task.sigma_start.float(),
-        n0=10,
-        reward_range=task.reward_range,
-        generator=torch.Generator().manual_seed(0),
-    )
-    run(opt, task, 30)
+    opt = run(make(cls, task, dtype=torch.float32), task, 30)
     assert opt.policies.dtype == torch.float32 and opt.policies.sample((3,)).dtype == torch.float32
     # A converged, ill-conditioned exploration: factorised in float64, then cast.
     eigenvalues = torch.logspace(-14, -2, opt.dim, dtype=F64)
