@@ -17,10 +17,13 @@ composes in any process (``hydra.compose`` in a test or a notebook included).
 """
 
 import dataclasses
+import sys
 import textwrap
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -437,11 +440,12 @@ def _help_lines(f: dataclasses.Field) -> list[str]:
     return textwrap.wrap(f.metadata["help"], 92, initial_indent=" " * 6, subsequent_indent=" " * 6)
 
 
-def _fields(schema: type, prefix: str, skip: str = "") -> list[str]:
-    """One entry per leaf field: ``  key: type = default`` and the help below it."""
+def _fields(schema: type, prefix: str, skip: Sequence[str] = ()) -> list[str]:
+    """One entry per leaf field: ``  key: type = default`` and the help below it. A section
+    that may be null (e.g. ``task.block``) gets its own entry, then its fields."""
     lines = []
     for f in dataclasses.fields(schema):
-        if f.name == skip:
+        if f.name in skip:
             continue
         value_type = typing.get_type_hints(schema)[f.name]
         if dataclasses.is_dataclass(value_type):
@@ -449,19 +453,29 @@ def _fields(schema: type, prefix: str, skip: str = "") -> list[str]:
             continue
         lines.append(f"  {prefix}{f.name}: {_type_name(value_type)}{_default(f)}")
         lines += _help_lines(f)
+        inner = [a for a in typing.get_args(value_type) if dataclasses.is_dataclass(a)]
+        if inner:  # an optional section
+            lines += _fields(inner[0], f"{prefix}{f.name}.")
     return lines
+
+
+def _program() -> str:
+    """How this process was started: ``python train.py``, or ``dipole-train`` (installed)."""
+    program = sys.argv[0] if sys.argv and sys.argv[0] else "train.py"
+    return f"python {Path(program).name}" if program.endswith(".py") else Path(program).name
 
 
 def help_text() -> str:
     """The ``--help`` page: the groups, then every field with its type, default and help.
     ``$APP_CONFIG_GROUPS`` and ``$CONFIG`` are filled in by Hydra."""
     top = [f for f in dataclasses.fields(Config) if f.name not in ("task", "algo")]
+    program = _program()
     lines = [
-        "python train.py [task=<task>] [algo=<algo>] [key=value ...]",
+        f"{program} [task=<task>] [algo=<algo>] [key=value ...]",
         "",
         "Trains DIPOLE or PoWER on a task. Every field below is a Hydra override, e.g.",
-        "  python train.py task=viapoint algo=power seed=3 trials=200 algo.optimizer.M=10",
-        "  python train.py -m task=multimodal seed=0,1,2      (a sweep, into multirun/)",
+        f"  {program} task=viapoint algo=power seed=3 trials=200 algo.optimizer.M=10",
+        f"  {program} -m task=multimodal seed=0,1,2      (a sweep, into multirun/)",
         "Values are type-checked when the config is composed (OmegaConf names the key).",
         "",
         "== Config groups (base_* are the schemas the options extend) ==",
@@ -474,14 +488,16 @@ def help_text() -> str:
         lines.append(f"  {f.name}: {_type_name(hints[f.name])}{_default(f)}")
         lines += _help_lines(f)
     lines += ["", "== Every task (task.*) =="]
-    lines += _fields(TaskConfig, "task.", skip="env")  # env: per task, below
+    common = [f.name for f in dataclasses.fields(TaskConfig)]
+    lines += _fields(TaskConfig, "task.", skip=["env"])  # env: per task, below
     for name, schema in TASKS.items():
         if schema is TaskConfig:
             continue
         lines += ["", f"== task={name}: {schema.__doc__.splitlines()[0]} =="]
         lines += _fields(typing.get_type_hints(schema)["env"], "task.env.")
+        lines += _fields(schema, "task.", skip=common)  # its own sections (task.block)
     lines += ["", "== Every algorithm (algo.*) =="]
-    lines += _fields(AlgoConfig, "algo.", skip="optimizer")
+    lines += _fields(AlgoConfig, "algo.", skip=["optimizer"])
     for name, schema in ALGOS.items():
         if schema is AlgoConfig:
             continue
@@ -491,7 +507,7 @@ def help_text() -> str:
         "",
         "== This run's config (with the overrides given) ==",
         "$CONFIG",
-        "Hydra's own options: python train.py --hydra-help",
+        f"Hydra's own options: {program} --hydra-help",
     ]
     return "\n".join(lines)
 
@@ -511,8 +527,8 @@ def register(store: ConfigStore | None = None) -> None:
         group="hydra/help",
         name="dipole",
         node={
-            "app_name": "train.py",
-            "header": "train.py: DIPOLE (Bruno et al., AAAI 2013) and PoWER in PyTorch",
+            "app_name": _program(),
+            "header": f"{_program()}: DIPOLE (Bruno et al., AAAI 2013) and PoWER in PyTorch",
             "footer": "",
             "template": "${hydra.help.header}\n\n" + text,
         },

@@ -302,6 +302,8 @@ def test_help_lists_every_field_with_its_help():
     assert "algo.optimizer.alpha: float = 1.0 DP concentration (> 0)" in text
     assert "task.env.reward_alpha: float = 2.5" in text
     assert "trials: int = the value of task.trials" in text
+    assert "python train.py [task=<task>]" in text
+    assert "task.block.trial: int = 300" in text  # a section that may be null (viapoint_blocked)
     sections = [(schemas.Config, ""), (schemas.TaskConfig, "task."), (schemas.AlgoConfig, "algo.")]
     for table, key, prefix in (
         (schemas.TASKS, "env", "task.env."),
