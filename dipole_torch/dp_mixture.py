@@ -636,11 +636,12 @@ class _Auxiliary:
 
 def _pass_start(
     y: Tensor, state: DPMixtureState, log_r: Tensor
-) -> tuple[list[int], list[int], int, np.ndarray, np.ndarray]:
-    """What both numpy label passes start from: ``labels`` and ``counts`` as lists, a slot
-    ``capacity``, ``score [N, capacity]`` with score[i, c] = log r_c + log N(y_i; μ_c, Σ_c)
-    (columns of components opened in the sweep are filled only for the points still to
-    come) and ``log_counts [capacity]`` (−inf for empty slots)."""
+) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
+    """What both numpy label passes start from: ``labels`` and ``counts`` as lists,
+    ``score [N, capacity]`` with score[i, c] = log r_c + log N(y_i; μ_c, Σ_c) (columns of
+    components opened in the sweep are filled only for the points still to come) and
+    ``log_counts [capacity]`` (−inf for empty slots), with room for ``capacity`` components
+    (:func:`_open_slot` grows it)."""
     n, k = y.shape[0], state.num_components
     labels = state.labels.tolist()
     counts = torch.bincount(state.labels, minlength=k).tolist()
@@ -651,7 +652,7 @@ def _pass_start(
     log_counts = np.full(capacity, -math.inf)
     with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
         log_counts[:k] = np.log(np.asarray(counts, dtype=float))
-    return labels, counts, capacity, score, log_counts
+    return labels, counts, score, log_counts
 
 
 def _label_pass_numpy(
@@ -680,7 +681,7 @@ def _label_pass_numpy(
         covariances and ``[k]`` counts (empty slots included).
     """
     n, k = y.shape[0], state.num_components
-    labels, counts, capacity, score, log_counts = _pass_start(y, state, log_r)
+    labels, counts, score, log_counts = _pass_start(y, state, log_r)
     logits = np.empty(0)  # reused buffer for one point's K + m logits
     u = uniforms.tolist()
     opened: dict[int, tuple[Tensor, Tensor, Tensor, float]] = {}  # slot -> μ, Σ, L, log r
@@ -689,8 +690,8 @@ def _label_pass_numpy(
         aux = auxiliary(start, stop)
         aux_score = aux.score.numpy()
         m = aux_score.shape[1]
-        if logits.shape[0] < capacity + m:
-            logits = np.empty(capacity + m)
+        if logits.shape[0] < score.shape[1] + m:
+            logits = np.empty(score.shape[1] + m)
         live = [slot for slot in opened if counts[slot] > 0]
         if live:  # components opened in earlier chunks: their columns for this chunk
             mean = torch.stack([opened[slot][0] for slot in live])
@@ -718,12 +719,7 @@ def _label_pass_numpy(
                 new = c if singleton else _free_slot(counts, k)
                 if new == k:
                     k += 1
-                    counts.append(0)
-                    if k > capacity:
-                        capacity *= 2
-                        score = _grow(score, capacity)
-                        log_counts = np.concatenate((log_counts, np.full(k - 1, -math.inf)))
-                        logits = np.empty(capacity + m)
+                    score, log_counts, logits = _open_slot(counts, score, log_counts, logits, m)
                 r = i - start
                 mean, cov, tril = aux.means[r, j], _symmetric(aux.covs[r, j]), aux.tril[r, j]
                 lr = float(aux.log_r[r, j])
@@ -760,8 +756,8 @@ def _label_pass_reuse(
     gives ``[count]`` draws with ``score [N, count]`` at every point.
     """
     n, k = y.shape[0], state.num_components
-    labels, counts, capacity, score, log_counts = _pass_start(y, state, log_r)
-    logits = np.empty(capacity + m)
+    labels, counts, score, log_counts = _pass_start(y, state, log_r)
+    logits = np.empty(score.shape[1] + m)
     u, slot_u = uniforms.tolist(), slot_uniforms.tolist()
     aux = fresh(m)
     slots = [(aux.means[j], aux.covs[j], aux.tril[j], float(aux.log_r[j])) for j in range(m)]
@@ -797,12 +793,7 @@ def _label_pass_reuse(
                 new = c if singleton else _free_slot(counts, k)
                 if new == k:
                     k += 1
-                    counts.append(0)
-                    if k > capacity:
-                        capacity *= 2
-                        score = _grow(score, capacity)
-                        log_counts = np.concatenate((log_counts, np.full(k - 1, -math.inf)))
-                        logits = np.empty(capacity + m)
+                    score, log_counts, logits = _open_slot(counts, score, log_counts, logits, m)
                 mean, cov, tril, lr = opened[new] = slots[j]
                 if i + 1 < n:
                     score[i + 1 :, new] = (_log_prob_tril(y[i + 1 :], mean, tril) + lr).numpy()
@@ -957,6 +948,21 @@ def _grow(score: np.ndarray, capacity: int) -> np.ndarray:
     grown = np.full((score.shape[0], capacity), -math.inf)
     grown[:, : score.shape[1]] = score
     return grown
+
+
+def _open_slot(
+    counts: list[int], score: np.ndarray, log_counts: np.ndarray, logits: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Component ``len(counts)`` opens, empty, in both numpy label passes; the slot arrays
+    (``score [N, capacity]``, ``log_counts [capacity]``, the ``capacity + m`` logits buffer)
+    double when it does not fit. Returns them (new arrays when they grew)."""
+    counts.append(0)
+    capacity = score.shape[1]
+    if len(counts) > capacity:
+        score = _grow(score, 2 * capacity)
+        log_counts = np.concatenate((log_counts, np.full(capacity, -math.inf)))
+        logits = np.empty(2 * capacity + m)
+    return score, log_counts, logits
 
 
 def _mean(y: Tensor) -> Tensor:
