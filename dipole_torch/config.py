@@ -63,6 +63,10 @@ def _field(default: Any, help: str) -> Any:  # noqa: A002 (the metadata key Hydr
 
 _DEVICE = "${device}"
 _DEVICE_HELP = "device the episodes run on (the top-level device)"
+_TASK_NAME_HELP = "the task's name (output directories, results.json)"
+_TRIALS_HELP = "the task's trial budget (the default of the top-level trials)"
+_N0_HELP = "initial samples from N(theta0, sigma_start); PoWER uses the same"
+_ALGO_NAME_HELP = "the algorithm's name (output directories, results.json)"
 
 
 # ------------------------------------------------------------------ top level
@@ -96,9 +100,9 @@ class TaskConfig:
     ``base_task`` is this schema with an untyped ``env``: a task of your own (another
     ``_target_`` with its own arguments) extends it."""
 
-    name: str = _field(MISSING, "the task's name (output directories, results.json)")
-    trials: int = _field(MISSING, "the task's trial budget (the default of the top-level trials)")
-    n0: int = _field(MISSING, "initial samples from N(theta0, sigma_start); PoWER uses the same")
+    name: str = _field(MISSING, _TASK_NAME_HELP)
+    trials: int = _field(MISSING, _TRIALS_HELP)
+    n0: int = _field(MISSING, _N0_HELP)
     env: Any = _field(MISSING, "the task, built by hydra.utils.instantiate from its _target_")
 
 
@@ -118,9 +122,9 @@ class MultimodalEnv:
 class MultimodalTask(TaskConfig):
     """Toy task: four equally high optima on a circle around theta0 = 0."""
 
-    name: str = _field("multimodal", "the task's name (output directories, results.json)")
-    trials: int = _field(300, "the task's trial budget (the default of the top-level trials)")
-    n0: int = _field(10, "initial samples from N(theta0, sigma_start); PoWER uses the same")
+    name: str = _field("multimodal", _TASK_NAME_HELP)
+    trials: int = _field(300, _TRIALS_HELP)
+    n0: int = _field(10, _N0_HELP)
     env: MultimodalEnv = field(
         default_factory=MultimodalEnv,
         metadata={"help": "dipole_torch.tasks.multimodal.MultimodalTask"},
@@ -147,9 +151,9 @@ class CartPoleEnv:
 class CartPoleTask(TaskConfig):
     """Cart-pole balancing, the paper's Fig. 1 (left)."""
 
-    name: str = _field("cartpole", "the task's name (output directories, results.json)")
-    trials: int = _field(500, "the task's trial budget (the default of the top-level trials)")
-    n0: int = _field(10, "initial samples from N(theta0, sigma_start); PoWER uses the same")
+    name: str = _field("cartpole", _TASK_NAME_HELP)
+    trials: int = _field(500, _TRIALS_HELP)
+    n0: int = _field(10, _N0_HELP)
     env: CartPoleEnv = field(
         default_factory=CartPoleEnv, metadata={"help": "dipole_torch.tasks.cartpole.CartPoleTask"}
     )
@@ -176,9 +180,9 @@ class MountainCarEnv:
 class MountainCarTask(TaskConfig):
     """Mountain car, the paper's Fig. 1 (right)."""
 
-    name: str = _field("mountain_car", "the task's name (output directories, results.json)")
-    trials: int = _field(500, "the task's trial budget (the default of the top-level trials)")
-    n0: int = _field(10, "initial samples from N(theta0, sigma_start); PoWER uses the same")
+    name: str = _field("mountain_car", _TASK_NAME_HELP)
+    trials: int = _field(500, _TRIALS_HELP)
+    n0: int = _field(10, _N0_HELP)
     env: MountainCarEnv = field(
         default_factory=MountainCarEnv,
         metadata={"help": "dipole_torch.tasks.mountain_car.MountainCarTask"},
@@ -260,9 +264,9 @@ class ViapointBlock:
 class ViapointTask(TaskConfig):
     """Viapoint task on the simulated Barrett WAM (or an arm of your own: README)."""
 
-    name: str = _field("viapoint", "the task's name (output directories, results.json)")
-    trials: int = _field(300, "the task's trial budget (the default of the top-level trials)")
-    n0: int = _field(30, "initial samples from N(theta0, sigma_start); PoWER uses the same")
+    name: str = _field("viapoint", _TASK_NAME_HELP)
+    trials: int = _field(300, _TRIALS_HELP)
+    n0: int = _field(30, _N0_HELP)
     env: ViapointEnv = field(
         default_factory=ViapointEnv, metadata={"help": "dipole_torch.tasks.viapoint.ViapointTask"}
     )
@@ -277,7 +281,7 @@ class AlgoConfig:
     """Every algorithm: a name, whether returns are mapped by the task's reward range, and
     the optimizer built by ``hydra.utils.instantiate`` (``base_algo``: untyped optimizer)."""
 
-    name: str = _field(MISSING, "the algorithm's name (output directories, results.json)")
+    name: str = _field(MISSING, _ALGO_NAME_HELP)
     use_task_reward_range: bool = _field(
         MISSING, "map returns by the task's reward range (false: learn it from the samples)"
     )
@@ -328,7 +332,7 @@ class DipoleOptimizer:
 class DipoleAlgo(AlgoConfig):
     """DIPOLE, this library's default variant (README, "Search quality")."""
 
-    name: str = _field("dipole", "the algorithm's name (output directories, results.json)")
+    name: str = _field("dipole", _ALGO_NAME_HELP)
     use_task_reward_range: bool = _field(
         False, "map returns by the task's reward range (false: learn it from the samples)"
     )
@@ -356,7 +360,7 @@ class DipolePaperOptimizer:
 class DipolePaperAlgo(AlgoConfig):
     """DIPOLE exactly as in the paper (Dipole.paper)."""
 
-    name: str = _field("dipole_paper", "the algorithm's name (output directories, results.json)")
+    name: str = _field("dipole_paper", _ALGO_NAME_HELP)
     use_task_reward_range: bool = _field(
         True, "map returns by the task's reward range (false: learn it from the samples)"
     )
@@ -380,7 +384,7 @@ class PowerOptimizer:
 class PowerAlgo(AlgoConfig):
     """PoWER, Algorithm 3 of the paper: one policy, fixed exploration covariance."""
 
-    name: str = _field("power", "the algorithm's name (output directories, results.json)")
+    name: str = _field("power", _ALGO_NAME_HELP)
     use_task_reward_range: bool = _field(
         True, "map returns by the task's reward range (false: learn it from the samples)"
     )
