@@ -130,6 +130,7 @@ class RewardRegression:
         # gain_k = Σ_θθ⁻¹ Σ_θw: E[w | θ, k] = μ_w + gain_kᵀ (θ − μ_θ).
         cross = covariances[:, :d, d:]
         self.gain = torch.cholesky_solve(cross, self.tril).squeeze(-1)  # [K, D]
+        self._bounds: tuple | None = None  # reward_weights' clamp, memoised per weights
 
     def predict(self, theta: Tensor) -> Tensor:
         """``[...]`` E[w | θ] for ``theta: [..., D]``."""
@@ -178,16 +179,35 @@ def reward_weights(
         mixture = RewardRegression(mixture.weights, mixture.means, mixture.covariances)
     d = mixture.means.shape[-1] - 1
     predicted = mixture.predict(query_means[..., :d])
-    reference = (weights if weights is not None else mixture.means[..., -1]).to(predicted)
+    low, high = _clamp_bounds(mixture, predicted, floor, weights)
+    if high is None:
+        return predicted.clamp_min(low).log()
+    return predicted.clamp(low, high).log()
+
+
+def _clamp_bounds(
+    regression: RewardRegression, predicted: Tensor, floor: float | None, weights: Tensor | None
+) -> tuple[Tensor, Tensor | None]:
+    """The 0-d bounds of :func:`reward_weights`' clamp (``high`` None without ``weights``).
+
+    They depend on the mixture and the data only, not on the queries: a sweep queries the
+    same regression twice (its components, then the auxiliary draws), so they are memoised
+    on ``regression`` for the same ``weights`` tensor (unmodified) and ``floor``.
+    """
+    key = (weights, None if weights is None else weights._version, floor, predicted.dtype)
+    memo = regression._bounds
+    if memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
+        return memo[1]
+    reference = (weights if weights is not None else regression.means[..., -1]).to(predicted)
     # The smallest normal float only matters for all-zero rewards, where eq. 6 is void.
     low = (1e-12 * reference.abs().max()).clamp_min(torch.finfo(predicted.dtype).tiny)
     if weights is not None:
         low = torch.maximum(low, reference.min())
     if floor is not None:
         low = torch.full_like(low, floor)
-    if weights is None:
-        return predicted.clamp_min(low).log()
-    return predicted.clamp(low, torch.maximum(reference.max(), low)).log()
+    high = None if weights is None else torch.maximum(reference.max(), low)
+    regression._bounds = (key, (low, high))
+    return low, high
 
 
 def neal8_sweep(
@@ -1028,7 +1048,10 @@ def _covariance_step(
     k = counts.shape[0]
     # Proposal and current state in one batched call (half the small-tensor ops).
     both = _regularisation_log_weight(
-        torch.cat((proposal, covs - reg)), reg, counts.repeat(2), scatter.repeat(2, 1, 1)
+        torch.cat((proposal, covs - reg)),
+        reg,
+        torch.cat((counts, counts)),  # (cat: a tenth of repeat's overhead)
+        torch.cat((scatter, scatter)),
     )
     log_ratio, log_current = both[:k], both[k:]
     # A current Σ outside the support (Σ + R given from outside, Σ not positive definite) has
@@ -1048,10 +1071,13 @@ def _regularisation_log_weight(
     """
     chol, info = torch.linalg.cholesky_ex(covs)
     valid = info == 0
-    eye = torch.eye(covs.shape[-1], dtype=covs.dtype, device=covs.device)
-    # Placeholders where Σ is not positive definite, masked out below.
-    chol = torch.where(valid[:, None, None], chol, eye)
-    covs = torch.where(valid[:, None, None], covs, eye)
+    # On CPU, where asking costs no sync, the masking is skipped when nothing needs it.
+    all_valid = covs.device.type == "cpu" and not bool(info.any())
+    if not all_valid:
+        eye = torch.eye(covs.shape[-1], dtype=covs.dtype, device=covs.device)
+        # Placeholders where Σ is not positive definite, masked out below.
+        chol = torch.where(valid[:, None, None], chol, eye)
+        covs = torch.where(valid[:, None, None], covs, eye)
     chol_reg = torch.linalg.cholesky(covs + regularization)
 
     def log_lik(factor: Tensor) -> Tensor:  # Σ_i log N(y_i; μ, L Lᵀ) up to −½ n D log 2π
@@ -1060,6 +1086,8 @@ def _regularisation_log_weight(
         return -0.5 * (counts * log_det + trace)
 
     weight = log_lik(chol_reg) - log_lik(chol)
+    if all_valid:
+        return weight
     return torch.where(valid, weight, torch.full_like(weight, -math.inf))
 
 
@@ -1079,7 +1107,7 @@ def _mean_conditional(
     Returns:
         ``[K, D]`` the location and ``[K, D, D]`` the Cholesky factor of the precision P.
     """
-    prior_precision = torch.cholesky_inverse(torch.linalg.cholesky(prior.mean_covariance))
+    prior_precision = prior._mean_precision()  # Σ0⁻¹, factorised once per prior
     precision_k = torch.cholesky_inverse(torch.linalg.cholesky(covs))
     precision = prior_precision + counts[:, None, None] * precision_k
     precision = 0.5 * (precision + precision.transpose(-1, -2))

@@ -14,6 +14,8 @@ draws every sample twice, which made them 99 % of a sweep at N = 1000, p = 51.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from torch.distributions import Categorical, Distribution
@@ -141,18 +143,37 @@ def bartlett_factor(
         generator: the source of randomness (``None``: the global RNG).
     """
     where = generator.device if generator is not None else df.device
-    rows, cols = torch.tril_indices(dim, dim, -1, device=df.device)
+    flat, steps = _bartlett_indices(dim, df.device, where, df.dtype)
     normal = torch.randn(
-        (*df.shape, rows.numel()), generator=generator, dtype=df.dtype, device=where
+        (*df.shape, dim * (dim - 1) // 2), generator=generator, dtype=df.dtype, device=where
     )
     # torch._standard_gamma is what torch.distributions.Gamma samples with; called directly
     # it takes the generator, so no fork of the global RNG is needed. χ²(k) = 2 Gamma(k/2).
-    half_df = 0.5 * (df.to(where)[..., None] - torch.arange(dim, dtype=df.dtype, device=where))
+    half_df = 0.5 * (_to(df, where)[..., None] - steps)
     chi2 = 2.0 * torch._standard_gamma(half_df, generator=generator)
-    factor = torch.zeros(*df.shape, dim, dim, dtype=df.dtype, device=df.device)
-    factor[..., rows, cols] = normal.to(df.device)
-    factor.diagonal(dim1=-2, dim2=-1).copy_(chi2.sqrt())
-    return factor
+    factor = torch.zeros(*df.shape, dim * dim, dtype=df.dtype, device=df.device)
+    # Below-diagonal normals, then the diagonal, written in one indexed copy.
+    factor.index_copy_(-1, flat, _to(torch.cat((normal, chi2.sqrt()), -1), df.device))
+    return factor.view(*df.shape, dim, dim)
+
+
+@functools.lru_cache(maxsize=64)
+def _bartlett_indices(
+    dim: int, device: torch.device, where: torch.device, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``[p(p+1)/2]`` flat (row-major) positions in a p × p factor of its strict lower
+    triangle, then of its diagonal (on ``device``), and ``[p]`` 0 … p − 1 (on ``where``):
+    made once per shape rather than at every draw (each is a small-tensor op). Not to be
+    modified."""
+    rows, cols = torch.tril_indices(dim, dim, -1, device=device)
+    diagonal = torch.arange(dim, device=device)
+    flat = torch.cat((rows * dim + cols, diagonal * (dim + 1)))
+    return flat, torch.arange(dim, dtype=dtype, device=where)
+
+
+def _to(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """``tensor.to(device)``, without the dispatch when it is already there."""
+    return tensor if tensor.device == device else tensor.to(device)
 
 
 def inverse_wishart(
