@@ -18,7 +18,8 @@ import functools
 
 import numpy as np
 import torch
-from torch.distributions import Categorical, Distribution
+from torch.distributions import Categorical, Distribution, MultivariateNormal
+from torch.distributions.multivariate_normal import _batch_mv
 
 _SEED_HIGH = 2**62
 
@@ -77,6 +78,8 @@ def draw_with_uniforms(
     if generator is None:
         return sample()
     seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
+    if type(distribution) is MultivariateNormal and device.type == "cpu":
+        return _draw_normal_seeded(distribution, num_uniforms, shape, seed)
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices, device_type=device.type):
         torch.random.default_generator.manual_seed(seed)
@@ -84,6 +87,26 @@ def draw_with_uniforms(
             with torch.cuda.device(device):
                 torch.cuda.manual_seed(seed)
         return sample()
+
+
+def _draw_normal_seeded(
+    distribution: MultivariateNormal, num_uniforms: int, shape: torch.Size, seed: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`draw_with_uniforms` of a CPU ``MultivariateNormal`` without forking the global
+    RNG (saving and restoring its state cost more than the draw): the same operations as
+    ``MultivariateNormal.sample`` (loc + L ε, ε filled by ``normal_``), with ε and the
+    uniforms from a private CPU generator seeded with ``seed``, the same Mersenne twister
+    the forked global one would be, so the numbers are the same."""
+    generator = torch.Generator()
+    generator.manual_seed(seed)
+    loc = distribution.loc
+    with torch.no_grad():
+        eps = torch.empty(distribution._extended_shape(shape), dtype=loc.dtype, device=loc.device)
+        eps.normal_(generator=generator)
+        value = loc + _batch_mv(distribution._unbroadcasted_scale_tril, eps)
+    if num_uniforms == 0:
+        return value, torch.empty(0, dtype=torch.float64)
+    return value, torch.rand(num_uniforms, dtype=torch.float64, generator=generator)
 
 
 def draw_categorical(logits: torch.Tensor, uniform: torch.Tensor) -> torch.Tensor:
