@@ -271,15 +271,16 @@ def neal8_sweep(
         The new state (contiguous labels, occupied components only).
     """
     _check_concentration(alpha, m)
-    y = y.to(DTYPE)
+    y = y if y.dtype == DTYPE else y.to(DTYPE)
     n, d = y.shape
     prior = state.prior
-    log_r = torch.zeros(state.num_components, dtype=DTYPE, device=y.device)
     weights = y[:, -1]
     if reward_weighted:
         counts = torch.bincount(state.labels, minlength=state.num_components).to(DTYPE)
         current = RewardRegression(counts, state.means, state.covariances)
         log_r = reward_weights(current, state.means, weights=weights)
+    else:
+        log_r = torch.zeros(state.num_components, dtype=DTYPE, device=y.device)
     log_aux_prior = math.log(alpha / m)
     uniforms = _uniforms(n, generator, y.device)
 
@@ -321,10 +322,15 @@ def neal8_sweep(
             y, state, log_r, auxiliary, uniforms, log_aux_prior, chunk
         )
     occupied = counts > 0
-    remap = torch.cumsum(occupied.long(), 0) - 1
-    labels = remap[labels]
-    new_state = DPMixtureState(labels, all_means[occupied], all_covs[occupied], prior)
-    new_state = resample_parameters(y, new_state, inner_steps, generator, exact_covariance)
+    # On CPU (no sync to ask) the relabelling is skipped when no component emptied.
+    if y.device.type != "cpu" or not bool(occupied.all()):
+        remap = torch.cumsum(occupied.long(), 0) - 1
+        labels = remap[labels]
+        all_means, all_covs, counts = all_means[occupied], all_covs[occupied], counts[occupied]
+    new_state = DPMixtureState(labels, all_means, all_covs, prior)
+    new_state = resample_parameters(
+        y, new_state, inner_steps, generator, exact_covariance, counts=counts
+    )
     if update_prior:
         anchor = initial_prior if initial_prior is not None else prior
         new_state.prior = prior.updated(
@@ -339,6 +345,7 @@ def resample_parameters(
     steps: int,
     generator: torch.Generator | None,
     exact_covariance: bool = True,
+    counts: Tensor | None = None,
 ) -> DPMixtureState:
     """Redraw every component's (μ, Σ) given its points, batched over K, ``steps`` times.
 
@@ -363,13 +370,15 @@ def resample_parameters(
         steps: alternations of the μ and Σ steps.
         generator: source of all randomness.
         exact_covariance: apply the Metropolis-Hastings correction.
+        counts: ``[K]`` float64 points per component, when the caller has them already.
 
     Returns:
         The state with the new means and covariances (Σ + R).
     """
     prior = state.prior
     labels, k = state.labels, state.num_components
-    counts = torch.bincount(labels, minlength=k).to(DTYPE)
+    if counts is None:
+        counts = torch.bincount(labels, minlength=k).to(DTYPE)
     residuals = _residual_sums(y, labels, prior.mean_loc, k)
     means, covs = state.means, state.covariances
     for _ in range(steps):
@@ -597,7 +606,7 @@ def _check_concentration(alpha: float, m: int) -> None:
 def _uniforms(n: int, generator: torch.Generator | None, device: torch.device) -> Tensor:
     """``[n]`` U(0, 1) draws from ``generator`` (on its own device), moved to ``device``."""
     where = generator.device if generator is not None else device
-    return torch.rand(n, generator=generator, dtype=DTYPE, device=where).to(device)
+    return _to(torch.rand(n, generator=generator, dtype=DTYPE, device=where), device)
 
 
 def _gaussian_log_prob(value: Tensor, means: Tensor, covariances: Tensor) -> Tensor:
@@ -622,9 +631,13 @@ def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
     inner = tuple(
         b if a == 1 else a for a, b in zip(diff.shape[len(lead) : -1], tril.shape[:-2], strict=True)
     )
-    tril = tril.expand(*inner, d, d)
+    # (Expands only where a shape changes: each call is a dispatch at these sizes.)
+    if tril.shape[:-2] != inner:
+        tril = tril.expand(*inner, d, d)
     size = math.prod(lead)
-    rhs = diff.expand(*lead, *inner, d).reshape(size, *inner, d).movedim(0, -1)
+    if diff.shape[len(lead) : -1] != inner:
+        diff = diff.expand(*lead, *inner, d)
+    rhs = diff.reshape(size, *inner, d).movedim(0, -1)
     z = torch.linalg.solve_triangular(tril, rhs, upper=False)  # [*inner, D, size]
     mahalanobis = z.square().sum(-2).movedim(-1, 0).reshape(*lead, *inner)
     log_det = tril.diagonal(dim1=-2, dim2=-1).log().sum(-1)
@@ -943,9 +956,11 @@ def _slot_parameters(
 ) -> tuple[Tensor, Tensor]:
     """``[k, D]`` means and ``[k, D, D]`` covariances of all k slots: the sweep's starting
     ones, overwritten by the components opened during the sweep (each slot's latest)."""
+    start = state.num_components
+    if not opened and k == start:
+        return state.means, state.covariances  # nothing opened: the starting ones
     means = torch.empty(k, state.means.shape[-1], dtype=DTYPE, device=state.means.device)
     covs = torch.empty(k, *state.covariances.shape[-2:], dtype=DTYPE, device=means.device)
-    start = state.num_components
     means[:start], covs[:start] = state.means, state.covariances
     for slot, (mean, cov, _, _) in opened.items():
         means[slot], covs[slot] = mean, cov
@@ -983,6 +998,11 @@ def _open_slot(
         log_counts = np.concatenate((log_counts, np.full(capacity, -math.inf)))
         logits = np.empty(2 * capacity + m)
     return score, log_counts, logits
+
+
+def _to(tensor: Tensor, device: torch.device) -> Tensor:
+    """``tensor.to(device)``, without the dispatch when it is already there."""
+    return tensor if tensor.device == device else tensor.to(device)
 
 
 def _mean(y: Tensor) -> Tensor:
@@ -1042,7 +1062,7 @@ def _covariance_step(
     proposal, uniforms = prior.sample_inverse_wishart(
         prior.df + counts, prior.scale + scatter, generator, num_uniforms=counts.shape[0]
     )
-    uniforms = uniforms.to(covs.device)
+    uniforms = _to(uniforms, covs.device)
     if not exact:
         return proposal + reg, torch.ones_like(counts, dtype=torch.bool)
     k = counts.shape[0]
@@ -1125,5 +1145,5 @@ def _draw_normal_precision(
     where = generator.device if generator is not None else loc.device
     z = torch.randn(loc.shape, generator=generator, dtype=loc.dtype, device=where)
     upper = precision_tril.transpose(-1, -2)
-    step = torch.linalg.solve_triangular(upper, z.to(loc.device).unsqueeze(-1), upper=True)
+    step = torch.linalg.solve_triangular(upper, _to(z, loc.device).unsqueeze(-1), upper=True)
     return loc + step.squeeze(-1)
