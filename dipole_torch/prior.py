@@ -183,13 +183,19 @@ class NormalInverseWishartPrior:
         where = generator.device if generator is not None else loc.device
         z = _to(torch.randn(d, 1, generator=generator, dtype=loc.dtype, device=where), loc.device)
         mean_loc = loc + torch.linalg.solve_triangular(chol.T, z, upper=True).squeeze(-1)
-        # Σ0 | μ0, {μ_k}
+        # Σ0 | μ0, {μ_k} (terms of the initial prior alone are memoised on it: the same at
+        # every sweep of a run)
         centred = means - mean_loc
-        scale_s = 2.0 * initial.mean_covariance + centred.T @ centred
+        scale_s = initial._memo("twice_mean", "mean_covariance", lambda m: 2.0 * m) + (
+            centred.T @ centred
+        )
         mean_covariance = self.sample_inverse_wishart(d + 3 + k, _symmetric(scale_s), generator)
         # Ψ0 | {Σ_k}
         hyper_df = d + 1.0
-        posterior_precision = hyper_df * initial._scale_inverse() + _inverse(covariances).sum(0)
+        hyper_scale_precision = initial._memo(
+            "hyper_precision", "scale", lambda _: hyper_df * initial._scale_inverse()
+        )
+        posterior_precision = hyper_scale_precision + _inverse(covariances).sum(0)
         posterior_scale_tril = torch.linalg.cholesky(_inverse(_symmetric(posterior_precision)))
         scale = wishart(hyper_df + k * self.df, posterior_scale_tril, generator)
         # Built from draws that are positive definite by construction: the validation of
