@@ -194,6 +194,11 @@ def _bartlett_indices(
     return flat, torch.arange(dim, dtype=dtype, device=where)
 
 
+def _expand(tensor: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+    """``tensor.expand(shape)``, without the dispatch when it has that shape already."""
+    return tensor if tuple(tensor.shape) == tuple(shape) else tensor.expand(shape)
+
+
 def _to(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
     """``tensor.to(device)``, without the dispatch when it is already there."""
     return tensor if tensor.device == device else tensor.to(device)
@@ -225,9 +230,9 @@ def inverse_wishart(
     """
     p = scale_tril.shape[-1]
     df, batch = _df_and_batch(df, scale_tril)
-    factor = bartlett_factor(df.expand(batch), p, generator)
+    factor = bartlett_factor(_expand(df, batch), p, generator)
     # B = A⁻¹ Lᵀ = (L A⁻ᵀ)ᵀ, so Σ = Bᵀ B.
-    upper = scale_tril.transpose(-1, -2).expand(*batch, p, p)
+    upper = _expand(scale_tril.transpose(-1, -2), (*batch, p, p))
     root = torch.linalg.solve_triangular(factor, upper, upper=False)
     sigma = root.transpose(-1, -2) @ root
     return 0.5 * (sigma + sigma.transpose(-1, -2)) if symmetrize else sigma
@@ -248,7 +253,7 @@ def wishart(
     """
     p = scale_tril.shape[-1]
     df, batch = _df_and_batch(df, scale_tril)
-    root = scale_tril @ bartlett_factor(df.expand(batch), p, generator)
+    root = scale_tril @ bartlett_factor(_expand(df, batch), p, generator)
     w = root @ root.transpose(-1, -2)
     return 0.5 * (w + w.transpose(-1, -2))
 
