@@ -4,8 +4,9 @@ import pytest
 import torch
 from torch.distributions import MultivariateNormal
 
+import dipole_torch.power as power_module
 import dipole_torch.sampling as sampling
-from dipole_torch import NormalInverseWishartPrior
+from dipole_torch import NormalInverseWishartPrior, importance_sets
 from dipole_torch.sampling import draw, draw_with_uniforms
 
 F64 = torch.float64
@@ -57,3 +58,33 @@ def test_prior_memos_follow_their_fields():
     prior.scale = spd(3, 5)  # replaced: recomputed
     expected = torch.cholesky_inverse(torch.linalg.cholesky(prior.scale))
     assert torch.equal(prior._scale_inverse(), 0.5 * (expected + expected.T))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_importance_sets_numpy_equals_torch(seed):
+    g = torch.Generator().manual_seed(seed)
+    n = int(torch.randint(1, 60, (1,), generator=g))
+    k = int(torch.randint(1, 6, (1,), generator=g))
+    size = int(torch.randint(1, 8, (1,), generator=g))
+    owner = torch.randint(0, k, (n,), generator=g)
+    # Few distinct values (ties), ±0 among them.
+    rewards = torch.randint(-3, 4, (n,), generator=g).to(F64) * 0.5
+    rewards[rewards == 0] = torch.tensor([0.0, -0.0], dtype=F64)[torch.arange(n)[rewards == 0] % 2]
+    if seed % 2:
+        rewards = rewards + 1e-3 * torch.randn(n, generator=g, dtype=F64)
+    fast = power_module._importance_sets_numpy(owner, rewards, k, size)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(power_module, "_importance_sets_numpy", lambda *args: None)
+        slow = importance_sets(owner, rewards, k, size)
+    assert fast is not None
+    for a, b in zip(fast, slow, strict=True):
+        assert a.dtype == b.dtype and torch.equal(a, b)
+
+
+def test_importance_sets_odd_inputs_take_the_torch_path():
+    nan = torch.tensor([1.0, float("nan"), 0.5], dtype=F64)
+    assert power_module._importance_sets_numpy(torch.zeros(3, dtype=torch.long), nan, 1, 2) is None
+    empty = power_module._importance_sets_numpy(torch.zeros(0, dtype=torch.long), nan[:0], 2, 3)
+    assert empty is None
+    keep, index, valid = importance_sets(torch.zeros(0, dtype=torch.long), nan[:0], 2, 3)
+    assert keep.shape == (0,) and not valid.any()
