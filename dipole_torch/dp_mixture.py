@@ -194,9 +194,12 @@ def _clamp_bounds(
     same regression twice (its components, then the auxiliary draws), so they are memoised
     on ``regression`` for the same ``weights`` tensor (unmodified) and ``floor``.
     """
-    key = (weights, None if weights is None else weights._version, floor, predicted.dtype)
+    # (Inference tensors have no version counter: their bounds are not memoised.)
+    cacheable = weights is None or not weights.is_inference()
+    key = (weights, weights._version if weights is not None and cacheable else None, floor)
+    key += (predicted.dtype,)
     memo = regression._bounds
-    if memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
+    if cacheable and memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
         return memo[1]
     reference = (weights if weights is not None else regression.means[..., -1]).to(predicted)
     # The smallest normal float only matters for all-zero rewards, where eq. 6 is void.
@@ -206,7 +209,8 @@ def _clamp_bounds(
     if floor is not None:
         low = torch.full_like(low, floor)
     high = None if weights is None else torch.maximum(reference.max(), low)
-    regression._bounds = (key, (low, high))
+    if cacheable:
+        regression._bounds = (key, (low, high))
     return low, high
 
 

@@ -216,8 +216,10 @@ class NormalInverseWishartPrior:
     # when its field is replaced or modified in place (identity and version checks).
     def _memo(self, name: str, field: str, compute) -> Tensor:
         """``compute(self.<field>)``, memoised while that field is the same unmodified tensor."""
-        memo = self.__dict__.setdefault("_memos", {})
         source = getattr(self, field)
+        if source.is_inference():  # no version counter to check: not memoised
+            return compute(source)
+        memo = self.__dict__.setdefault("_memos", {})
         hit = memo.get(name)
         if hit is not None and hit[0] is source and hit[1] == source._version:
             return hit[2]

@@ -88,3 +88,22 @@ def test_importance_sets_odd_inputs_take_the_torch_path():
     assert empty is None
     keep, index, valid = importance_sets(torch.zeros(0, dtype=torch.long), nan[:0], 2, 3)
     assert keep.shape == (0,) and not valid.any()
+
+
+def test_memos_under_inference_mode():
+    """Inference tensors have no version counter: the memos step aside, same numbers."""
+    from dipole_torch import fit_dp_mixture
+
+    y = torch.randn(12, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
+    y[:, -1] = y[:, -1].abs() + 0.1
+
+    def fit():
+        prior = NormalInverseWishartPrior.from_exploration(y.mean(0), torch.cov(y.T))
+        g = torch.Generator().manual_seed(1)
+        return fit_dp_mixture(y, prior, 3, reward_weighted=True, generator=g)
+
+    plain = fit()
+    with torch.inference_mode():
+        inferred = fit()
+    assert torch.equal(plain.labels, inferred.labels)
+    assert torch.equal(plain.covariances, inferred.covariances)
