@@ -626,7 +626,8 @@ def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
     The leading dims go into the columns of one triangular solve per factor, so the factors
     are never copied per point (an expanded ``[N, K, D, D]`` would take gigabytes).
     """
-    diff = value - mean
+    # (x − 0.0 is x, bit for bit: RewardRegression's queries come centred.)
+    diff = value if isinstance(mean, float) and mean == 0.0 else value - mean
     d = diff.shape[-1]
     nb = tril.dim() - 2
     if diff.dim() - 1 < nb:
@@ -681,7 +682,9 @@ def _pass_start(
     (:func:`_open_slot` grows it)."""
     n, k = y.shape[0], state.num_components
     labels = state.labels.tolist()
-    counts = torch.bincount(state.labels, minlength=k).tolist()
+    counts = [0] * k  # (counted in Python: a bincount and its read cost more at these sizes)
+    for label in labels:
+        counts[label] += 1
     capacity = max(2 * k, 8)
     score = np.full((n, capacity), -math.inf)
     starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r

@@ -15,6 +15,7 @@ draws every sample twice, which made them 99 % of a sweep at N = 1000, p = 51.
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 import torch
@@ -146,8 +147,8 @@ def draw_categorical_numpy(logits: np.ndarray, uniform: float) -> int:
         The label in ``[0, C)``.
     """
     cdf = np.exp(logits - logits.max()).cumsum()
-    total = cdf[-1]
-    value = min(uniform * total, np.nextafter(total, 0.0))  # see draw_categorical
+    total = float(cdf[-1])
+    value = min(uniform * total, math.nextafter(total, 0.0))  # see draw_categorical
     return min(int(cdf.searchsorted(value, side="right")), len(cdf) - 1)
 
 
