@@ -7,7 +7,7 @@ from torch.distributions import MultivariateNormal
 import dipole_torch.power as power_module
 import dipole_torch.sampling as sampling
 from dipole_torch import NormalInverseWishartPrior, importance_sets
-from dipole_torch.sampling import draw, draw_with_uniforms
+from dipole_torch.sampling import draw, draw_gaussian, draw_with_uniforms
 
 F64 = torch.float64
 
@@ -107,3 +107,18 @@ def test_memos_under_inference_mode():
         inferred = fit()
     assert torch.equal(plain.labels, inferred.labels)
     assert torch.equal(plain.covariances, inferred.covariances)
+
+
+@pytest.mark.parametrize("shape", [(), (3,), (40,)])
+@pytest.mark.parametrize("d", [1, 2, 10])
+@pytest.mark.parametrize("loc_batch", [(), (4,)])
+@pytest.mark.parametrize("cov_batch", [(), (4,)])
+def test_draw_gaussian_equals_draw_of_the_distribution(monkeypatch, shape, d, loc_batch, cov_batch):
+    loc = torch.randn(*loc_batch, d, generator=torch.Generator().manual_seed(d), dtype=F64)
+    cov = spd(d, 3).expand(*cov_batch, d, d)
+    fast_gen, slow_gen = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    fast = draw_gaussian(loc, cov, shape, fast_gen)
+    mvn = MultivariateNormal(loc, covariance_matrix=cov, validate_args=False)
+    slow = forked(monkeypatch, draw, mvn, shape, slow_gen)
+    assert fast.shape == slow.shape and torch.equal(fast, slow)
+    assert torch.equal(fast_gen.get_state(), slow_gen.get_state())
