@@ -203,7 +203,7 @@ def bartlett_factor(
         generator: the source of randomness (``None``: the global RNG).
     """
     where = generator.device if generator is not None else df.device
-    flat, steps = _bartlett_indices(dim, df.device, where, df.dtype)
+    lower, diagonal, steps = _bartlett_indices(dim, df.device, where, df.dtype)
     normal = torch.randn(
         (*df.shape, dim * (dim - 1) // 2), generator=generator, dtype=df.dtype, device=where
     )
@@ -212,23 +212,23 @@ def bartlett_factor(
     half_df = 0.5 * (_to(df, where)[..., None] - steps)
     chi2 = 2.0 * torch._standard_gamma(half_df, generator=generator)
     factor = torch.zeros(*df.shape, dim * dim, dtype=df.dtype, device=df.device)
-    # Below-diagonal normals, then the diagonal, written in one indexed copy.
-    factor.index_copy_(-1, flat, _to(torch.cat((normal, chi2.sqrt()), -1), df.device))
+    # Flat index_copy_ rather than an advanced-index assignment and a diagonal view's copy_.
+    factor.index_copy_(-1, lower, _to(normal, df.device))
+    factor.index_copy_(-1, diagonal, _to(chi2.sqrt(), df.device))
     return factor.view(*df.shape, dim, dim)
 
 
 @functools.lru_cache(maxsize=64)
 def _bartlett_indices(
     dim: int, device: torch.device, where: torch.device, dtype: torch.dtype
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``[p(p+1)/2]`` flat (row-major) positions in a p × p factor of its strict lower
-    triangle, then of its diagonal (on ``device``), and ``[p]`` 0 … p − 1 (on ``where``):
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The flat (row-major) positions in a p × p factor of its ``[p(p−1)/2]`` strict lower
+    triangle and ``[p]`` diagonal (on ``device``), and ``[p]`` 0 … p − 1 (on ``where``):
     made once per shape rather than at every draw (each is a small-tensor op). Not to be
     modified."""
     rows, cols = torch.tril_indices(dim, dim, -1, device=device)
     diagonal = torch.arange(dim, device=device)
-    flat = torch.cat((rows * dim + cols, diagonal * (dim + 1)))
-    return flat, torch.arange(dim, dtype=dtype, device=where)
+    return rows * dim + cols, diagonal * (dim + 1), torch.arange(dim, dtype=dtype, device=where)
 
 
 def _expand(tensor: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
