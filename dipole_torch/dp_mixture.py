@@ -130,6 +130,7 @@ class RewardRegression:
         # gain_k = Σ_θθ⁻¹ Σ_θw: E[w | θ, k] = μ_w + gain_kᵀ (θ − μ_θ).
         cross = covariances[:, :d, d:]
         self.gain = torch.cholesky_solve(cross, self.tril).squeeze(-1)  # [K, D]
+        self._bounds: tuple | None = None  # reward_weights' clamp, memoised per weights
 
     def predict(self, theta: Tensor) -> Tensor:
         """``[...]`` E[w | θ] for ``theta: [..., D]``."""
@@ -178,16 +179,39 @@ def reward_weights(
         mixture = RewardRegression(mixture.weights, mixture.means, mixture.covariances)
     d = mixture.means.shape[-1] - 1
     predicted = mixture.predict(query_means[..., :d])
-    reference = (weights if weights is not None else mixture.means[..., -1]).to(predicted)
+    low, high = _clamp_bounds(mixture, predicted, floor, weights)
+    if high is None:
+        return predicted.clamp_min(low).log()
+    return predicted.clamp(low, high).log()
+
+
+def _clamp_bounds(
+    regression: RewardRegression, predicted: Tensor, floor: float | None, weights: Tensor | None
+) -> tuple[Tensor, Tensor | None]:
+    """The 0-d bounds of :func:`reward_weights`' clamp (``high`` None without ``weights``).
+
+    They depend on the mixture and the data only, not on the queries: a sweep queries the
+    same regression twice (its components, then the auxiliary draws), so they are memoised
+    on ``regression`` for the same ``weights`` tensor (unmodified) and ``floor``.
+    """
+    # (Inference tensors have no version counter: their bounds are not memoised.)
+    cacheable = weights is None or not weights.is_inference()
+    key = (weights, weights._version if weights is not None and cacheable else None, floor)
+    key += (predicted.dtype,)
+    memo = regression._bounds
+    if cacheable and memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
+        return memo[1]
+    reference = (weights if weights is not None else regression.means[..., -1]).to(predicted)
     # The smallest normal float only matters for all-zero rewards, where eq. 6 is void.
     low = (1e-12 * reference.abs().max()).clamp_min(torch.finfo(predicted.dtype).tiny)
     if weights is not None:
         low = torch.maximum(low, reference.min())
     if floor is not None:
         low = torch.full_like(low, floor)
-    if weights is None:
-        return predicted.clamp_min(low).log()
-    return predicted.clamp(low, torch.maximum(reference.max(), low)).log()
+    high = None if weights is None else torch.maximum(reference.max(), low)
+    if cacheable:
+        regression._bounds = (key, (low, high))
+    return low, high
 
 
 def neal8_sweep(
@@ -251,15 +275,16 @@ def neal8_sweep(
         The new state (contiguous labels, occupied components only).
     """
     _check_concentration(alpha, m)
-    y = y.to(DTYPE)
+    y = y if y.dtype == DTYPE else y.to(DTYPE)
     n, d = y.shape
     prior = state.prior
-    log_r = torch.zeros(state.num_components, dtype=DTYPE, device=y.device)
     weights = y[:, -1]
     if reward_weighted:
         counts = torch.bincount(state.labels, minlength=state.num_components).to(DTYPE)
         current = RewardRegression(counts, state.means, state.covariances)
         log_r = reward_weights(current, state.means, weights=weights)
+    else:
+        log_r = torch.zeros(state.num_components, dtype=DTYPE, device=y.device)
     log_aux_prior = math.log(alpha / m)
     uniforms = _uniforms(n, generator, y.device)
 
@@ -301,10 +326,15 @@ def neal8_sweep(
             y, state, log_r, auxiliary, uniforms, log_aux_prior, chunk
         )
     occupied = counts > 0
-    remap = torch.cumsum(occupied.long(), 0) - 1
-    labels = remap[labels]
-    new_state = DPMixtureState(labels, all_means[occupied], all_covs[occupied], prior)
-    new_state = resample_parameters(y, new_state, inner_steps, generator, exact_covariance)
+    # On CPU (no sync to ask) the relabelling is skipped when no component emptied.
+    if y.device.type != "cpu" or not bool(occupied.all()):
+        remap = torch.cumsum(occupied.long(), 0) - 1
+        labels = remap[labels]
+        all_means, all_covs, counts = all_means[occupied], all_covs[occupied], counts[occupied]
+    new_state = DPMixtureState(labels, all_means, all_covs, prior)
+    new_state = resample_parameters(
+        y, new_state, inner_steps, generator, exact_covariance, counts=counts
+    )
     if update_prior:
         anchor = initial_prior if initial_prior is not None else prior
         new_state.prior = prior.updated(
@@ -319,6 +349,7 @@ def resample_parameters(
     steps: int,
     generator: torch.Generator | None,
     exact_covariance: bool = True,
+    counts: Tensor | None = None,
 ) -> DPMixtureState:
     """Redraw every component's (μ, Σ) given its points, batched over K, ``steps`` times.
 
@@ -343,13 +374,15 @@ def resample_parameters(
         steps: alternations of the μ and Σ steps.
         generator: source of all randomness.
         exact_covariance: apply the Metropolis-Hastings correction.
+        counts: ``[K]`` float64 points per component, when the caller has them already.
 
     Returns:
         The state with the new means and covariances (Σ + R).
     """
     prior = state.prior
     labels, k = state.labels, state.num_components
-    counts = torch.bincount(labels, minlength=k).to(DTYPE)
+    if counts is None:
+        counts = torch.bincount(labels, minlength=k).to(DTYPE)
     residuals = _residual_sums(y, labels, prior.mean_loc, k)
     means, covs = state.means, state.covariances
     for _ in range(steps):
@@ -577,7 +610,7 @@ def _check_concentration(alpha: float, m: int) -> None:
 def _uniforms(n: int, generator: torch.Generator | None, device: torch.device) -> Tensor:
     """``[n]`` U(0, 1) draws from ``generator`` (on its own device), moved to ``device``."""
     where = generator.device if generator is not None else device
-    return torch.rand(n, generator=generator, dtype=DTYPE, device=where).to(device)
+    return _to(torch.rand(n, generator=generator, dtype=DTYPE, device=where), device)
 
 
 def _gaussian_log_prob(value: Tensor, means: Tensor, covariances: Tensor) -> Tensor:
@@ -593,7 +626,8 @@ def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
     The leading dims go into the columns of one triangular solve per factor, so the factors
     are never copied per point (an expanded ``[N, K, D, D]`` would take gigabytes).
     """
-    diff = value - mean
+    # (x − 0.0 is x, bit for bit: RewardRegression's queries come centred.)
+    diff = value if isinstance(mean, float) and mean == 0.0 else value - mean
     d = diff.shape[-1]
     nb = tril.dim() - 2
     if diff.dim() - 1 < nb:
@@ -602,9 +636,13 @@ def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
     inner = tuple(
         b if a == 1 else a for a, b in zip(diff.shape[len(lead) : -1], tril.shape[:-2], strict=True)
     )
-    tril = tril.expand(*inner, d, d)
+    # (Expands only where a shape changes: each call is a dispatch at these sizes.)
+    if tril.shape[:-2] != inner:
+        tril = tril.expand(*inner, d, d)
     size = math.prod(lead)
-    rhs = diff.expand(*lead, *inner, d).reshape(size, *inner, d).movedim(0, -1)
+    if diff.shape[len(lead) : -1] != inner:
+        diff = diff.expand(*lead, *inner, d)
+    rhs = diff.reshape(size, *inner, d).movedim(0, -1)
     z = torch.linalg.solve_triangular(tril, rhs, upper=False)  # [*inner, D, size]
     mahalanobis = z.square().sum(-2).movedim(-1, 0).reshape(*lead, *inner)
     log_det = tril.diagonal(dim1=-2, dim2=-1).log().sum(-1)
@@ -644,7 +682,9 @@ def _pass_start(
     (:func:`_open_slot` grows it)."""
     n, k = y.shape[0], state.num_components
     labels = state.labels.tolist()
-    counts = torch.bincount(state.labels, minlength=k).tolist()
+    counts = [0] * k  # (counted in Python: a bincount and its read cost more at these sizes)
+    for label in labels:
+        counts[label] += 1
     capacity = max(2 * k, 8)
     score = np.full((n, capacity), -math.inf)
     starting = _gaussian_log_prob(y[:, None, :], state.means, state.covariances) + log_r
@@ -923,9 +963,11 @@ def _slot_parameters(
 ) -> tuple[Tensor, Tensor]:
     """``[k, D]`` means and ``[k, D, D]`` covariances of all k slots: the sweep's starting
     ones, overwritten by the components opened during the sweep (each slot's latest)."""
+    start = state.num_components
+    if not opened and k == start:
+        return state.means, state.covariances  # nothing opened: the starting ones
     means = torch.empty(k, state.means.shape[-1], dtype=DTYPE, device=state.means.device)
     covs = torch.empty(k, *state.covariances.shape[-2:], dtype=DTYPE, device=means.device)
-    start = state.num_components
     means[:start], covs[:start] = state.means, state.covariances
     for slot, (mean, cov, _, _) in opened.items():
         means[slot], covs[slot] = mean, cov
@@ -963,6 +1005,11 @@ def _open_slot(
         log_counts = np.concatenate((log_counts, np.full(capacity, -math.inf)))
         logits = np.empty(2 * capacity + m)
     return score, log_counts, logits
+
+
+def _to(tensor: Tensor, device: torch.device) -> Tensor:
+    """``tensor.to(device)``, without the dispatch when it is already there."""
+    return tensor if tensor.device == device else tensor.to(device)
 
 
 def _mean(y: Tensor) -> Tensor:
@@ -1022,13 +1069,16 @@ def _covariance_step(
     proposal, uniforms = prior.sample_inverse_wishart(
         prior.df + counts, prior.scale + scatter, generator, num_uniforms=counts.shape[0]
     )
-    uniforms = uniforms.to(covs.device)
+    uniforms = _to(uniforms, covs.device)
     if not exact:
         return proposal + reg, torch.ones_like(counts, dtype=torch.bool)
     k = counts.shape[0]
     # Proposal and current state in one batched call (half the small-tensor ops).
     both = _regularisation_log_weight(
-        torch.cat((proposal, covs - reg)), reg, counts.repeat(2), scatter.repeat(2, 1, 1)
+        torch.cat((proposal, covs - reg)),
+        reg,
+        torch.cat((counts, counts)),  # (cat: a tenth of repeat's overhead)
+        torch.cat((scatter, scatter)),
     )
     log_ratio, log_current = both[:k], both[k:]
     # A current Σ outside the support (Σ + R given from outside, Σ not positive definite) has
@@ -1048,10 +1098,13 @@ def _regularisation_log_weight(
     """
     chol, info = torch.linalg.cholesky_ex(covs)
     valid = info == 0
-    eye = torch.eye(covs.shape[-1], dtype=covs.dtype, device=covs.device)
-    # Placeholders where Σ is not positive definite, masked out below.
-    chol = torch.where(valid[:, None, None], chol, eye)
-    covs = torch.where(valid[:, None, None], covs, eye)
+    # On CPU, where asking costs no sync, the masking is skipped when nothing needs it.
+    all_valid = covs.device.type == "cpu" and not bool(info.any())
+    if not all_valid:
+        eye = torch.eye(covs.shape[-1], dtype=covs.dtype, device=covs.device)
+        # Placeholders where Σ is not positive definite, masked out below.
+        chol = torch.where(valid[:, None, None], chol, eye)
+        covs = torch.where(valid[:, None, None], covs, eye)
     chol_reg = torch.linalg.cholesky(covs + regularization)
 
     def log_lik(factor: Tensor) -> Tensor:  # Σ_i log N(y_i; μ, L Lᵀ) up to −½ n D log 2π
@@ -1060,6 +1113,8 @@ def _regularisation_log_weight(
         return -0.5 * (counts * log_det + trace)
 
     weight = log_lik(chol_reg) - log_lik(chol)
+    if all_valid:
+        return weight
     return torch.where(valid, weight, torch.full_like(weight, -math.inf))
 
 
@@ -1079,7 +1134,7 @@ def _mean_conditional(
     Returns:
         ``[K, D]`` the location and ``[K, D, D]`` the Cholesky factor of the precision P.
     """
-    prior_precision = torch.cholesky_inverse(torch.linalg.cholesky(prior.mean_covariance))
+    prior_precision = prior._mean_precision()  # Σ0⁻¹, factorised once per prior
     precision_k = torch.cholesky_inverse(torch.linalg.cholesky(covs))
     precision = prior_precision + counts[:, None, None] * precision_k
     precision = 0.5 * (precision + precision.transpose(-1, -2))
@@ -1097,5 +1152,5 @@ def _draw_normal_precision(
     where = generator.device if generator is not None else loc.device
     z = torch.randn(loc.shape, generator=generator, dtype=loc.dtype, device=where)
     upper = precision_tril.transpose(-1, -2)
-    step = torch.linalg.solve_triangular(upper, z.to(loc.device).unsqueeze(-1), upper=True)
+    step = torch.linalg.solve_triangular(upper, _to(z, loc.device).unsqueeze(-1), upper=True)
     return loc + step.squeeze(-1)

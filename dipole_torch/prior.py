@@ -119,7 +119,7 @@ class NormalInverseWishartPrior:
             return covariance
         where = generator.device if generator is not None else scale.device
         uniforms = torch.rand(num_uniforms, generator=generator, dtype=DTYPE, device=where)
-        return covariance, uniforms.to(scale.device)
+        return covariance, _to(uniforms, scale.device)
 
     def sample(
         self, n: int, generator: torch.Generator | None = None, symmetrize: bool = True
@@ -135,9 +135,8 @@ class NormalInverseWishartPrior:
         d = self.dim
         where = generator.device if generator is not None else self.mean_loc.device
         z = torch.randn(n, d, generator=generator, dtype=self.mean_loc.dtype, device=where)
-        mean_tril = torch.linalg.cholesky(self.mean_covariance)
-        means = self.mean_loc + z.to(self.mean_loc.device) @ mean_tril.T
-        scale_tril = torch.linalg.cholesky(self.scale).expand(n, d, d)
+        means = self.mean_loc + _to(z, self.mean_loc.device) @ self._mean_tril().T
+        scale_tril = self._scale_tril().expand(n, d, d)
         covariances = inverse_wishart(self.df, scale_tril, generator, symmetrize)
         return means, covariances + self.regularization
 
@@ -172,8 +171,8 @@ class NormalInverseWishartPrior:
         """
         d, k = self.dim, means.shape[0]
         # μ0 | Σ0, {μ_k}
-        hyper_precision = _inverse(initial.mean_covariance)
-        spread_precision = _inverse(self.mean_covariance)
+        hyper_precision = initial._mean_covariance_inverse()
+        spread_precision = self._mean_covariance_inverse()
         precision = hyper_precision + k * spread_precision
         # loc = P⁻¹ (Σ_h⁻¹ μ0_init + Σ0⁻¹ Σ_k μ_k), written about μ0_init so that large offsets
         # of the means cancel before the solve rather than after it.
@@ -182,15 +181,21 @@ class NormalInverseWishartPrior:
         loc = initial.mean_loc + torch.cholesky_solve(rhs[:, None], chol).squeeze(-1)
         # μ0 = loc + L⁻ᵀ z has covariance (L Lᵀ)⁻¹ = P⁻¹; z from the generator directly.
         where = generator.device if generator is not None else loc.device
-        z = torch.randn(d, 1, generator=generator, dtype=loc.dtype, device=where).to(loc.device)
+        z = _to(torch.randn(d, 1, generator=generator, dtype=loc.dtype, device=where), loc.device)
         mean_loc = loc + torch.linalg.solve_triangular(chol.T, z, upper=True).squeeze(-1)
-        # Σ0 | μ0, {μ_k}
+        # Σ0 | μ0, {μ_k} (terms of the initial prior alone are memoised on it: the same at
+        # every sweep of a run)
         centred = means - mean_loc
-        scale_s = 2.0 * initial.mean_covariance + centred.T @ centred
+        scale_s = initial._memo("twice_mean", "mean_covariance", lambda m: 2.0 * m) + (
+            centred.T @ centred
+        )
         mean_covariance = self.sample_inverse_wishart(d + 3 + k, _symmetric(scale_s), generator)
         # Ψ0 | {Σ_k}
         hyper_df = d + 1.0
-        posterior_precision = hyper_df * _inverse(initial.scale) + _inverse(covariances).sum(0)
+        hyper_scale_precision = initial._memo(
+            "hyper_precision", "scale", lambda _: hyper_df * initial._scale_inverse()
+        )
+        posterior_precision = hyper_scale_precision + _inverse(covariances).sum(0)
         posterior_scale_tril = torch.linalg.cholesky(_inverse(_symmetric(posterior_precision)))
         scale = wishart(hyper_df + k * self.df, posterior_scale_tril, generator)
         # Built from draws that are positive definite by construction: the validation of
@@ -204,6 +209,51 @@ class NormalInverseWishartPrior:
             regularization=self.regularization,
         )
         return prior
+
+    # The factorisations below are memoised on the prior: a sweep needs each several times
+    # (H's draws, the μ step, H's update), the initial prior's at every sweep of a run.
+    # Reusing a factor is exact (the same call on the same matrix); a memo is recomputed
+    # when its field is replaced or modified in place (identity and version checks).
+    def _memo(self, name: str, field: str, compute) -> Tensor:
+        """``compute(self.<field>)``, memoised while that field is the same unmodified tensor."""
+        source = getattr(self, field)
+        if source.is_inference():  # no version counter to check: not memoised
+            return compute(source)
+        memo = self.__dict__.setdefault("_memos", {})
+        hit = memo.get(name)
+        if hit is not None and hit[0] is source and hit[1] == source._version:
+            return hit[2]
+        value = compute(source)
+        memo[name] = (source, source._version, value)
+        return value
+
+    def _mean_tril(self) -> Tensor:
+        """``[D, D]`` Cholesky factor of Σ0 (memoised; not to be modified)."""
+        return self._memo("mean_tril", "mean_covariance", torch.linalg.cholesky)
+
+    def _mean_precision(self) -> Tensor:
+        """``[D, D]`` Σ0⁻¹ from its factor, as computed (memoised; not to be modified)."""
+        return self._memo(
+            "mean_precision", "mean_covariance", lambda _: torch.cholesky_inverse(self._mean_tril())
+        )
+
+    def _mean_covariance_inverse(self) -> Tensor:
+        """``[D, D]`` Σ0⁻¹ symmetrised, as :func:`_inverse` computes it (memoised)."""
+        return self._memo(
+            "mean_inverse", "mean_covariance", lambda _: _symmetric(self._mean_precision())
+        )
+
+    def _scale_tril(self) -> Tensor:
+        """``[D, D]`` Cholesky factor of Ψ0 (memoised; not to be modified)."""
+        return self._memo("scale_tril", "scale", torch.linalg.cholesky)
+
+    def _scale_inverse(self) -> Tensor:
+        """``[D, D]`` Ψ0⁻¹ symmetrised, as :func:`_inverse` computes it (memoised)."""
+        return self._memo(
+            "scale_inverse",
+            "scale",
+            lambda _: _symmetric(torch.cholesky_inverse(self._scale_tril())),
+        )
 
     def state_dict(self) -> dict[str, Tensor | float]:
         return {
@@ -221,6 +271,11 @@ class NormalInverseWishartPrior:
 
 def _symmetric(matrix: Tensor) -> Tensor:
     return 0.5 * (matrix + matrix.transpose(-1, -2))
+
+
+def _to(tensor: Tensor, device: torch.device) -> Tensor:
+    """``tensor.to(device)``, without the dispatch when it is already there."""
+    return tensor if tensor.device == device else tensor.to(device)
 
 
 def _inverse(matrix: Tensor) -> Tensor:

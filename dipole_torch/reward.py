@@ -118,7 +118,8 @@ class RewardScale:
         if self.positive:
             return rewards
         low, high = self.range(rewards.reshape(-1) if reference is None else reference)
-        low, high = low.to(rewards), high.to(rewards)
+        if low.dtype != rewards.dtype or low.device != rewards.device:
+            low, high = low.to(rewards), high.to(rewards)
         return ((rewards - low) / (high - low)).clamp(self.floor, 1.0)
 
     def inverse(self, weights: Tensor, reference: Tensor | None = None) -> Tensor:

@@ -14,9 +14,13 @@ draws every sample twice, which made them 99 % of a sweep at N = 1000, p = 51.
 
 from __future__ import annotations
 
+import functools
+import math
+
 import numpy as np
 import torch
-from torch.distributions import Categorical, Distribution
+from torch.distributions import Categorical, Distribution, MultivariateNormal
+from torch.distributions.multivariate_normal import _batch_mv
 
 _SEED_HIGH = 2**62
 
@@ -75,6 +79,8 @@ def draw_with_uniforms(
     if generator is None:
         return sample()
     seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
+    if type(distribution) is MultivariateNormal and device.type == "cpu":
+        return _draw_normal_seeded(distribution, num_uniforms, shape, seed)
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices, device_type=device.type):
         torch.random.default_generator.manual_seed(seed)
@@ -82,6 +88,62 @@ def draw_with_uniforms(
             with torch.cuda.device(device):
                 torch.cuda.manual_seed(seed)
         return sample()
+
+
+def draw_gaussian(
+    loc: torch.Tensor,
+    covariance: torch.Tensor,
+    sample_shape: torch.Size | tuple[int, ...] = (),
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """``draw(MultivariateNormal(loc, covariance_matrix=covariance), sample_shape, generator)``
+    without building the distribution, with the same numbers.
+
+    The distribution object's construction (``torch.broadcast_shapes``, expands, its
+    bookkeeping) costs several times the draw itself at small D. Here: the same Cholesky
+    factor, the same seed taken from ``generator``, the same normals and the same
+    ``loc + L ε``. No argument validation (as ``validate_args=False``).
+
+    Args:
+        loc: ``[*batch_l, D]`` means.
+        covariance: ``[*batch_c, D, D]`` positive-definite covariances (batch dims broadcast).
+
+    Returns:
+        ``[*sample_shape, *batch, D]`` draws.
+    """
+    if generator is None or loc.device.type != "cpu":
+        mvn = MultivariateNormal(loc, covariance_matrix=covariance, validate_args=False)
+        return draw(mvn, sample_shape, generator)
+    tril = torch.linalg.cholesky(covariance)
+    batch = _broadcast(tuple(covariance.shape[:-2]), tuple(loc.shape[:-1]))
+    loc = _expand(loc, (*batch, loc.shape[-1]))
+    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
+    private = torch.Generator()
+    private.manual_seed(seed)
+    with torch.no_grad():
+        eps = torch.empty((*sample_shape, *loc.shape), dtype=loc.dtype, device=loc.device)
+        eps.normal_(generator=private)
+        return loc + _batch_mv(tril, eps)
+
+
+def _draw_normal_seeded(
+    distribution: MultivariateNormal, num_uniforms: int, shape: torch.Size, seed: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`draw_with_uniforms` of a CPU ``MultivariateNormal`` without forking the global
+    RNG (saving and restoring its state cost more than the draw): the same operations as
+    ``MultivariateNormal.sample`` (loc + L ε, ε filled by ``normal_``), with ε and the
+    uniforms from a private CPU generator seeded with ``seed``, the same Mersenne twister
+    the forked global one would be, so the numbers are the same."""
+    generator = torch.Generator()
+    generator.manual_seed(seed)
+    loc = distribution.loc
+    with torch.no_grad():
+        eps = torch.empty(distribution._extended_shape(shape), dtype=loc.dtype, device=loc.device)
+        eps.normal_(generator=generator)
+        value = loc + _batch_mv(distribution._unbroadcasted_scale_tril, eps)
+    if num_uniforms == 0:
+        return value, torch.empty(0, dtype=torch.float64)
+    return value, torch.rand(num_uniforms, dtype=torch.float64, generator=generator)
 
 
 def draw_categorical(logits: torch.Tensor, uniform: torch.Tensor) -> torch.Tensor:
@@ -121,8 +183,8 @@ def draw_categorical_numpy(logits: np.ndarray, uniform: float) -> int:
         The label in ``[0, C)``.
     """
     cdf = np.exp(logits - logits.max()).cumsum()
-    total = cdf[-1]
-    value = min(uniform * total, np.nextafter(total, 0.0))  # see draw_categorical
+    total = float(cdf[-1])
+    value = min(uniform * total, math.nextafter(total, 0.0))  # see draw_categorical
     return min(int(cdf.searchsorted(value, side="right")), len(cdf) - 1)
 
 
@@ -141,18 +203,42 @@ def bartlett_factor(
         generator: the source of randomness (``None``: the global RNG).
     """
     where = generator.device if generator is not None else df.device
-    rows, cols = torch.tril_indices(dim, dim, -1, device=df.device)
+    lower, diagonal, steps = _bartlett_indices(dim, df.device, where, df.dtype)
     normal = torch.randn(
-        (*df.shape, rows.numel()), generator=generator, dtype=df.dtype, device=where
+        (*df.shape, dim * (dim - 1) // 2), generator=generator, dtype=df.dtype, device=where
     )
     # torch._standard_gamma is what torch.distributions.Gamma samples with; called directly
     # it takes the generator, so no fork of the global RNG is needed. χ²(k) = 2 Gamma(k/2).
-    half_df = 0.5 * (df.to(where)[..., None] - torch.arange(dim, dtype=df.dtype, device=where))
+    half_df = 0.5 * (_to(df, where)[..., None] - steps)
     chi2 = 2.0 * torch._standard_gamma(half_df, generator=generator)
-    factor = torch.zeros(*df.shape, dim, dim, dtype=df.dtype, device=df.device)
-    factor[..., rows, cols] = normal.to(df.device)
-    factor.diagonal(dim1=-2, dim2=-1).copy_(chi2.sqrt())
-    return factor
+    factor = torch.zeros(*df.shape, dim * dim, dtype=df.dtype, device=df.device)
+    # Flat index_copy_ rather than an advanced-index assignment and a diagonal view's copy_.
+    factor.index_copy_(-1, lower, _to(normal, df.device))
+    factor.index_copy_(-1, diagonal, _to(chi2.sqrt(), df.device))
+    return factor.view(*df.shape, dim, dim)
+
+
+@functools.lru_cache(maxsize=64)
+def _bartlett_indices(
+    dim: int, device: torch.device, where: torch.device, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The flat (row-major) positions in a p × p factor of its ``[p(p−1)/2]`` strict lower
+    triangle and ``[p]`` diagonal (on ``device``), and ``[p]`` 0 … p − 1 (on ``where``):
+    made once per shape rather than at every draw (each is a small-tensor op). Not to be
+    modified."""
+    rows, cols = torch.tril_indices(dim, dim, -1, device=device)
+    diagonal = torch.arange(dim, device=device)
+    return rows * dim + cols, diagonal * (dim + 1), torch.arange(dim, dtype=dtype, device=where)
+
+
+def _expand(tensor: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+    """``tensor.expand(shape)``, without the dispatch when it has that shape already."""
+    return tensor if tuple(tensor.shape) == tuple(shape) else tensor.expand(shape)
+
+
+def _to(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """``tensor.to(device)``, without the dispatch when it is already there."""
+    return tensor if tensor.device == device else tensor.to(device)
 
 
 def inverse_wishart(
@@ -181,9 +267,9 @@ def inverse_wishart(
     """
     p = scale_tril.shape[-1]
     df, batch = _df_and_batch(df, scale_tril)
-    factor = bartlett_factor(df.expand(batch), p, generator)
+    factor = bartlett_factor(_expand(df, batch), p, generator)
     # B = A⁻¹ Lᵀ = (L A⁻ᵀ)ᵀ, so Σ = Bᵀ B.
-    upper = scale_tril.transpose(-1, -2).expand(*batch, p, p)
+    upper = _expand(scale_tril.transpose(-1, -2), (*batch, p, p))
     root = torch.linalg.solve_triangular(factor, upper, upper=False)
     sigma = root.transpose(-1, -2) @ root
     return 0.5 * (sigma + sigma.transpose(-1, -2)) if symmetrize else sigma
@@ -204,9 +290,19 @@ def wishart(
     """
     p = scale_tril.shape[-1]
     df, batch = _df_and_batch(df, scale_tril)
-    root = scale_tril @ bartlett_factor(df.expand(batch), p, generator)
+    root = scale_tril @ bartlett_factor(_expand(df, batch), p, generator)
     w = root @ root.transpose(-1, -2)
     return 0.5 * (w + w.transpose(-1, -2))
+
+
+def _broadcast(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    """The broadcast of shapes ``a`` and ``b`` (by hand: ``torch.broadcast_shapes`` costs
+    ~0.3 ms a call in torch 2.13)."""
+    width = max(len(a), len(b))
+    a, b = (1,) * (width - len(a)) + a, (1,) * (width - len(b)) + b
+    if any(x != y and 1 not in (x, y) for x, y in zip(a, b, strict=True)):
+        raise ValueError(f"shapes {list(a)} and {list(b)} do not broadcast")
+    return tuple(y if x == 1 else x for x, y in zip(a, b, strict=True))
 
 
 def _df_and_batch(df: torch.Tensor | float, scale_tril: torch.Tensor) -> tuple[torch.Tensor, tuple]:
