@@ -19,7 +19,6 @@ import math
 
 import torch
 from torch import Tensor
-from torch.distributions import MultivariateNormal
 
 from dipole_torch.dp_mixture import (
     DTYPE,
@@ -31,7 +30,7 @@ from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.power import importance_sets, power_update
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.reward import RewardScale, check_rewards
-from dipole_torch.sampling import draw
+from dipole_torch.sampling import draw_gaussian
 from dipole_torch.validation import (
     check_count,
     check_finite,
@@ -184,8 +183,7 @@ class PolicySearch:
             proposal.
         """
         if not self.started:
-            base = MultivariateNormal(self.theta0, covariance_matrix=self.sigma_start)
-            theta = draw(base, (self.n0,), self.generator)
+            theta = draw_gaussian(self.theta0, self.sigma_start, (self.n0,), self.generator)
             owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
         else:
             theta, owner = self._propose()
@@ -204,8 +202,7 @@ class PolicySearch:
             means, covs = self.policy_means, self.policy_covariances
         else:
             means, covs = self.policy_means[index], self.policy_covariances[index]
-        policy = MultivariateNormal(means, covariance_matrix=covs, validate_args=False)
-        return draw(policy, (), self.generator), index
+        return draw_gaussian(means, covs, (), self.generator), index
 
     def tell(self, theta: Tensor, rewards: Tensor) -> None:
         """Report the returns of the parameters from the last :meth:`ask`.
@@ -778,8 +775,7 @@ class Dipole(PolicySearch):
         )
         scouts = self._scouts_next()
         if scouts:
-            base = MultivariateNormal(self.theta0, covariance_matrix=self.sigma_start)
-            extra = draw(base, (scouts,), self.generator)
+            extra = draw_gaussian(self.theta0, self.sigma_start, (scouts,), self.generator)
             theta = torch.cat((theta, extra))
             owner = torch.cat((owner, torch.full_like(extra[:, 0], -1, dtype=torch.long)))
         probes = torch.cat((self.candidate_probes, self.pair_probes))
