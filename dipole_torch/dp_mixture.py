@@ -16,7 +16,7 @@ from torch import Tensor
 
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.sampling import draw_categorical, draw_categorical_numpy
+from dipole_torch.sampling import _to, draw_categorical, draw_categorical_numpy
 from dipole_torch.validation import check_finite, check_matrix_shape
 
 DTYPE = torch.float64
@@ -1005,11 +1005,6 @@ def _open_slot(
         log_counts = np.concatenate((log_counts, np.full(capacity, -math.inf)))
         logits = np.empty(2 * capacity + m)
     return score, log_counts, logits
-
-
-def _to(tensor: Tensor, device: torch.device) -> Tensor:
-    """``tensor.to(device)``, without the dispatch when it is already there."""
-    return tensor if tensor.device == device else tensor.to(device)
 
 
 def _mean(y: Tensor) -> Tensor:

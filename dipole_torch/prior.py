@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 from torch.distributions import MultivariateNormal
 
-from dipole_torch.sampling import inverse_wishart, wishart
+from dipole_torch.sampling import _to, inverse_wishart, wishart
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
 
 DTYPE = torch.float64
@@ -271,11 +271,6 @@ class NormalInverseWishartPrior:
 
 def _symmetric(matrix: Tensor) -> Tensor:
     return 0.5 * (matrix + matrix.transpose(-1, -2))
-
-
-def _to(tensor: Tensor, device: torch.device) -> Tensor:
-    """``tensor.to(device)``, without the dispatch when it is already there."""
-    return tensor if tensor.device == device else tensor.to(device)
 
 
 def _inverse(matrix: Tensor) -> Tensor:
