@@ -16,7 +16,7 @@ from torch import Tensor
 
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.sampling import _to, draw_categorical, draw_categorical_numpy
+from dipole_torch.sampling import _expand, _to, draw_categorical, draw_categorical_numpy
 from dipole_torch.validation import check_finite, check_matrix_shape
 
 DTYPE = torch.float64
@@ -636,12 +636,9 @@ def _log_prob_tril(value: Tensor, mean: Tensor, tril: Tensor) -> Tensor:
     inner = tuple(
         b if a == 1 else a for a, b in zip(diff.shape[len(lead) : -1], tril.shape[:-2], strict=True)
     )
-    # (Expands only where a shape changes: each call is a dispatch at these sizes.)
-    if tril.shape[:-2] != inner:
-        tril = tril.expand(*inner, d, d)
+    tril = _expand(tril, (*inner, d, d))
     size = math.prod(lead)
-    if diff.shape[len(lead) : -1] != inner:
-        diff = diff.expand(*lead, *inner, d)
+    diff = _expand(diff, (*lead, *inner, d))
     rhs = diff.reshape(size, *inner, d).movedim(0, -1)
     z = torch.linalg.solve_triangular(tril, rhs, upper=False)  # [*inner, D, size]
     mahalanobis = z.square().sum(-2).movedim(-1, 0).reshape(*lead, *inner)
