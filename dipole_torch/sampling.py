@@ -78,7 +78,7 @@ def draw_with_uniforms(
 
     if generator is None:
         return sample()
-    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
+    seed = _take_seed(generator)
     if type(distribution) is MultivariateNormal and device.type == "cpu":
         return _draw_normal_seeded(distribution, num_uniforms, shape, seed)
     devices = [device] if device.type == "cuda" else []
@@ -117,30 +117,44 @@ def draw_gaussian(
     tril = torch.linalg.cholesky(covariance)
     batch = _broadcast(tuple(covariance.shape[:-2]), tuple(loc.shape[:-1]))
     loc = _expand(loc, (*batch, loc.shape[-1]))
-    seed = int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
-    private = torch.Generator()
-    private.manual_seed(seed)
+    value, _ = _seeded_gaussian(loc, tril, tuple(sample_shape), _take_seed(generator))
+    return value
+
+
+def _take_seed(generator: torch.Generator) -> int:
+    """The one seed a draw takes from ``generator``."""
+    return int(torch.randint(0, _SEED_HIGH, (1,), generator=generator, device=generator.device))
+
+
+def _seeded_gaussian(
+    loc: torch.Tensor, tril: torch.Tensor, sample_shape: tuple[int, ...], seed: int
+) -> tuple[torch.Tensor, torch.Generator]:
+    """``[*sample_shape, *loc.shape]`` draws loc + L ε on CPU, as ``MultivariateNormal.sample``
+    makes them (ε filled by ``normal_``), from a private CPU generator seeded with ``seed``:
+    the same Mersenne twister a forked global one would be, so the numbers are the same.
+    Returns the draws and that generator (for draws that follow from the same seed).
+
+    Args:
+        loc: ``[*batch, D]`` means, already broadcast to the batch shape.
+        tril: ``[*batch_c, D, D]`` lower Cholesky factors (batch dims broadcast with loc's).
+    """
+    generator = torch.Generator()
+    generator.manual_seed(seed)
     with torch.no_grad():
         eps = torch.empty((*sample_shape, *loc.shape), dtype=loc.dtype, device=loc.device)
-        eps.normal_(generator=private)
-        return loc + _batch_mv(tril, eps)
+        eps.normal_(generator=generator)
+        return loc + _batch_mv(tril, eps), generator
 
 
 def _draw_normal_seeded(
     distribution: MultivariateNormal, num_uniforms: int, shape: torch.Size, seed: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`draw_with_uniforms` of a CPU ``MultivariateNormal`` without forking the global
-    RNG (saving and restoring its state cost more than the draw): the same operations as
-    ``MultivariateNormal.sample`` (loc + L ε, ε filled by ``normal_``), with ε and the
-    uniforms from a private CPU generator seeded with ``seed``, the same Mersenne twister
-    the forked global one would be, so the numbers are the same."""
-    generator = torch.Generator()
-    generator.manual_seed(seed)
-    loc = distribution.loc
-    with torch.no_grad():
-        eps = torch.empty(distribution._extended_shape(shape), dtype=loc.dtype, device=loc.device)
-        eps.normal_(generator=generator)
-        value = loc + _batch_mv(distribution._unbroadcasted_scale_tril, eps)
+    RNG (saving and restoring its state cost more than the draw): the draw of
+    :func:`_seeded_gaussian`, then the uniforms from the same private generator."""
+    value, generator = _seeded_gaussian(
+        distribution.loc, distribution._unbroadcasted_scale_tril, tuple(shape), seed
+    )
     if num_uniforms == 0:
         return value, torch.empty(0, dtype=torch.float64)
     return value, torch.rand(num_uniforms, dtype=torch.float64, generator=generator)
