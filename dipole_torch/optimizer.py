@@ -65,6 +65,56 @@ def make_reward_scale(reward_range: RewardRange, floor: float) -> RewardScale:
     return RewardScale(low, high, floor)
 
 
+Bounds = tuple[float | Tensor, float | Tensor] | None
+
+
+def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
+    """``(lower [D], upper [D])`` in float64 on ``theta0``'s device from ``bounds`` =
+    ``(lower, upper)``, each a number, a list of D numbers or a ``[D]`` tensor (±inf: that
+    side is open), or
+    ``None`` (no box). Raises ``ValueError`` unless lower < upper on every axis and θ0 lies
+    inside."""
+    if bounds is None:
+        return None
+    try:
+        low, high = bounds
+    except (TypeError, ValueError):
+        raise ValueError(f"bounds must be None or (lower, upper), got {bounds!r}") from None
+    d = theta0.shape[0]
+    box = []
+    for name, value in (("lower", low), ("upper", high)):
+        numbers = isinstance(value, list | tuple) and all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value
+        )
+        if isinstance(value, bool) or not (isinstance(value, int | float | Tensor) or numbers):
+            raise TypeError(
+                f"bounds' {name} must be a number, a list of D numbers or a [D] tensor, "
+                f"got {value!r}"
+            )
+        edge = torch.as_tensor(value, dtype=DTYPE, device=theta0.device)
+        if edge.dim() == 0:
+            edge = edge.expand(d)
+        check_matrix_shape(edge, (d,), f"bounds' {name}")
+        if bool(edge.isnan().any()):
+            raise ValueError(f"bounds' {name} contains NaN")
+        box.append(edge.clone())
+    lower, upper = box
+    if not bool((lower < upper).all()):
+        axis = int((lower >= upper).nonzero()[0])
+        raise ValueError(
+            f"bounds must have lower < upper on every axis; axis {axis} has "
+            f"[{float(lower[axis])}, {float(upper[axis])}]"
+        )
+    outside = (theta0 < lower) | (theta0 > upper)
+    if bool(outside.any()):
+        axis = int(outside.nonzero()[0])
+        raise ValueError(
+            f"theta0 must lie inside bounds; axis {axis}: {float(theta0[axis])} is outside "
+            f"[{float(lower[axis])}, {float(upper[axis])}]"
+        )
+    return lower, upper
+
+
 class PolicySearch:
     """What DIPOLE and PoWER share: data, importance sets, the PoWER step, ask/tell
     bookkeeping, best-so-far and checkpoints.
@@ -72,6 +122,12 @@ class PolicySearch:
     Internal maths run in float64 on ``theta0``'s device; ``ask`` returns ``theta0``'s dtype.
 
     ``tell`` is transactional: if it raises, the optimizer is exactly as before the call.
+
+    With ``bounds = (lower, upper)`` every asked row is projected onto the box (each
+    coordinate clipped), a told row outside it raises, and the policy means stay inside
+    (eq. 7 averages samples in the box; the paper variant's posterior means are clipped).
+    Clipping, not resampling or reflection, so that an optimum on the boundary (a joint
+    limit) is sampled exactly; θ0 must lie in the box. Without ``bounds`` nothing changes.
 
     Attributes:
         trials: number of reward evaluations told so far (the x-axis of the paper's plots).
@@ -95,6 +151,7 @@ class PolicySearch:
         reward_range: RewardRange = None,
         reward_floor: float = 1e-3,
         generator: torch.Generator | None = None,
+        bounds: Bounds = None,
     ):
         check_real_tensor(theta0, "theta0")
         check_real_tensor(sigma_start, "sigma_start")
@@ -124,6 +181,7 @@ class PolicySearch:
         self.device = theta0.device
         self.theta0 = theta0.to(DTYPE)
         self.sigma_start = sigma_start.to(DTYPE)
+        self.box = make_box(bounds, self.theta0)
         self.M = int(M)
         self.n0 = int(n0)
         self.reward_scale = make_reward_scale(reward_range, reward_floor)
@@ -187,8 +245,30 @@ class PolicySearch:
             owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
         else:
             theta, owner = self._propose()
+        theta = self._into_box(theta)
         self._pending, self._pending_owner = theta, owner
         return theta.to(self.dtype)
+
+    def _check_in_box(self, theta: Tensor) -> None:
+        """Raise ``ValueError`` naming the first told row outside the box (compared in the
+        told dtype, so an asked row rounded to float32 still counts as inside)."""
+        if self.box is None:
+            return
+        lower, upper = (edge.to(device=theta.device, dtype=theta.dtype) for edge in self.box)
+        outside = (theta < lower) | (theta > upper)
+        if bool(outside.any()):
+            row, axis = (int(i) for i in outside.nonzero()[0])
+            raise ValueError(
+                f"theta row {row} lies outside bounds on axis {axis}: "
+                f"{float(theta[row, axis])} not in [{float(lower[axis])}, {float(upper[axis])}]"
+            )
+
+    def _into_box(self, theta: Tensor) -> Tensor:
+        """``theta [..., D]`` projected onto the box (each coordinate clipped to its
+        bounds); unchanged without ``bounds``."""
+        if self.box is None:
+            return theta
+        return torch.minimum(torch.maximum(theta, self.box[0]), self.box[1])
 
     @property
     def asked_owner(self) -> Tensor | None:
@@ -227,11 +307,16 @@ class PolicySearch:
                 f"ask, or its first n (1 <= n <= {asked})"
             )
         check_finite(theta, "theta")
+        self._check_in_box(theta)
         rewards = check_rewards(torch.as_tensor(rewards), theta.shape[0]).to(self.device)
         self.reward_scale.validate(rewards)  # before any state changes
         snapshot = self.state_dict()
         try:
-            self._tell(theta.to(device=self.device, dtype=DTYPE), rewards)
+            self._tell(self._into_box(theta.to(device=self.device, dtype=DTYPE)), rewards)
+            if self.box is not None:
+                # Eq. 7's means are convex combinations of samples in the box, but the
+                # paper variant's posterior means weigh them by matrices.
+                self.policy_means = self._into_box(self.policy_means)
         except BaseException:
             self.load_state_dict(snapshot)
             raise
@@ -510,6 +595,8 @@ class Power(PolicySearch):
         min_exploration: floor of that factor, in (0, 1].
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
+        bounds: ``(lower, upper)`` box of the parameters (numbers or ``[D]`` tensors; ±inf
+            leaves a side open), or ``None``; see :class:`PolicySearch`.
     """
 
     def __init__(
@@ -523,10 +610,11 @@ class Power(PolicySearch):
         exploration_decay: float = 1.0,
         min_exploration: float = 1e-2,
         generator: torch.Generator | None = None,
+        bounds: Bounds = None,
     ):
         check_real(exploration_decay, "exploration_decay")
         check_real(min_exploration, "min_exploration")
-        super().__init__(theta0, sigma_start, M, n0, reward_range, reward_floor, generator)
+        super().__init__(theta0, sigma_start, M, n0, reward_range, reward_floor, generator, bounds)
         if not 0.0 < exploration_decay <= 1.0:
             raise ValueError(f"exploration_decay must lie in (0, 1], got {exploration_decay}")
         if not 0.0 < min_exploration <= 1.0:
@@ -603,7 +691,10 @@ class Dipole(PolicySearch):
     * A policy whose exploration std has shrunk below ``retire_std`` times Σ_start's is
       retired: it stays among :attr:`policies` but is no longer sampled, so its trials go to
       the others. An active policy closer than ``merge_radius`` exploration stds to another
-      (both ways) or to a retired one is a duplicate and is dropped.
+      (both ways) or to a retired one, and to no third policy, is a duplicate and is
+      dropped (one whose exploration covers two or more is left to the hill-valley probes).
+    * A candidate starts exploring at most half the way to the policy it was told apart
+      from; one that replaces a retired policy starts from its better sample.
 
     Args:
         theta0: ``[D]`` initial policy.
@@ -631,6 +722,8 @@ class Dipole(PolicySearch):
         hill_valley: vet candidates and neighbouring policies with midpoint probes.
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
+        bounds: ``(lower, upper)`` box of the parameters (numbers or ``[D]`` tensors; ±inf
+            leaves a side open), or ``None``; see :class:`PolicySearch`.
 
     Choices where the paper is silent:
         * The prior H is built at the first clustering from the exploration distribution:
@@ -676,6 +769,7 @@ class Dipole(PolicySearch):
         merge_radius: float = 1.0,
         hill_valley: bool = True,
         generator: torch.Generator | None = None,
+        bounds: Bounds = None,
     ):
         check_real(alpha, "alpha (DP concentration)")
         check_count(m, "m (auxiliary components)")
@@ -692,6 +786,7 @@ class Dipole(PolicySearch):
             reward_range,
             reward_floor,
             generator,
+            bounds,
         )
         if not (isinstance(alpha, int | float) and math.isfinite(alpha) and alpha > 0):
             raise ValueError(f"alpha (DP concentration) must be positive and finite, got {alpha}")
@@ -1212,6 +1307,7 @@ class Dipole(PolicySearch):
                 & ~self.active[partners]
                 & (self.candidate_rewards > self.policy_best_rewards[partners])
             )
+            self._place_candidates(refutes)
             accepted = self._accept_candidates(valley | refutes)
             replaced = partners[accepted[refutes[accepted]]].unique()
             if replaced.numel():
@@ -1220,6 +1316,29 @@ class Dipole(PolicySearch):
                 pair_rewards = pair_rewards[:0]
                 self._remove_policies(replaced)
         self._judge_pairs(pair_rewards)
+
+    def _place_candidates(self, refutes: Tensor) -> None:
+        """Where the judged candidates would start (``refutes [C]``: the candidates that
+        replace their retired partner, the others being new hills).
+
+        * A replacement starts from its refuting sample, the best point known on that hill,
+          not from its component's mean, which may lie on the next hill (seen on the 1-D
+          equal-maxima function: the replacement wandered off and the optimum was lost).
+        * Each explores at most half the way to its partner, in Σ_start's per-axis stds:
+          for a new hill a valley lies in between, so the hill is no wider, and a wider
+          start spends its first samples on the neighbour's hill (new policies between
+          converged ones then looked like duplicates of them). A replacement explores at
+          least as widely as the policy it replaces."""
+        self.candidate_means = torch.where(
+            refutes[:, None], self.candidate_samples, self.candidate_means
+        )
+        scale = self.sigma_start.diagonal().sqrt()
+        half_gap = ((self.candidate_probes - self.candidate_samples) / scale).norm(dim=-1)
+        partner = self._relative_std()[self.candidate_partners]
+        half_gap = torch.where(refutes, torch.maximum(half_gap, partner), half_gap)
+        relative = self._relative_std(self.candidate_covariances)
+        factor = (half_gap / relative.clamp_min(1e-300)).clamp(max=1.0).square()
+        self.candidate_covariances = factor[:, None, None] * self.candidate_covariances
 
     def _accept_candidates(self, accept: Tensor) -> Tensor:
         """New policies from the ``accept``-ed candidates (within ``max_policies``); the
@@ -1317,9 +1436,15 @@ class Dipole(PolicySearch):
         diff = self.policy_means[None, :, :] - self.policy_means[:, None, :]
         distance = self._exploration_distance(diff)
         near = distance < self.merge_radius
+        near.fill_diagonal_(False)
+        # A policy whose exploration covers two or more others is judged by none of them:
+        # exploring that widely (a new policy), it may well be on a hill of its own, which
+        # only a hill-valley probe can tell (seen with many optima: new policies between
+        # retired ones were dropped as duplicates, 90 of 103 on Vincent's 2-D function).
+        judged = near.sum(-1) == 1
         best = self.policy_best_rewards
         drop = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
-        for a in self.active.nonzero().squeeze(-1).tolist():
+        for a in (self.active & judged).nonzero().squeeze(-1).tolist():
             for b in range(self.num_policies):
                 if a == b or drop[b] or drop[a]:
                     continue
