@@ -27,13 +27,15 @@ never uses more: a batch that would cross the budget is not evaluated, or, where
 allows it, only its first points are (CMA-ES's best-so-far, NMMSO, random search). Each starts
 from what it would be given on an unknown problem in the box [−5, 5]^D:
 
-* **DIPOLE**: ``Dipole(0, 2.5²·I, generator=…)``, the library's defaults and no reward range
-  (it must cope with any scale by itself). Returned: the final policy means.
-* **DIPOLE (paper)**: ``Dipole.paper(0, 2.5²·I, reward_range=(b, b + h), generator=…)``, the
-  paper's variant, told the true reward range. Returned: the final policy means.
-* **PoWER**: ``Power(0, 2.5²·I, reward_range=(b, b + h), exploration_decay=0.98, …)``: one
-  policy, with decaying exploration (fairer than a fixed Σ, which could never home in on a
-  peak). Returned: its final mean (one solution).
+* **DIPOLE**: ``Dipole(0, 2.5²·I, bounds=(−5, 5), generator=…)``, the library's defaults
+  and no reward range (it must cope with any scale by itself). Returned: the final policy
+  means. Like the peers it is told the box: its samples are clipped into it.
+* **DIPOLE (paper)**: ``Dipole.paper(0, 2.5²·I, reward_range=(b, b + h), bounds=(−5, 5),
+  generator=…)``, the paper's variant, told the true reward range. Returned: the final
+  policy means.
+* **PoWER**: ``Power(0, 2.5²·I, reward_range=(b, b + h), exploration_decay=0.98,
+  bounds=(−5, 5), …)``: one policy, with decaying exploration (fairer than a fixed Σ, which
+  could never home in on a peak). Returned: its final mean (one solution).
 * **IPOP-CMA-ES**: pycma's ``CMAEvolutionStrategy`` in an ask/tell loop (so the budget is
   exact), bounds [−5, 5], sigma0 = 2.5 (a quarter of the box width, pycma's advice), x0
   uniform in the box at every restart, population 4 + ⌊3 ln D⌋ doubled at each restart, a
@@ -142,6 +144,16 @@ class Landscape:
         return int(self.centres.shape[0])
 
     @property
+    def lower(self) -> Tensor:
+        """``[D]`` the search box's lower corner (−BOX on every axis)."""
+        return torch.full((self.dim,), -BOX, dtype=DTYPE)
+
+    @property
+    def upper(self) -> Tensor:
+        """``[D]`` the search box's upper corner (+BOX on every axis)."""
+        return torch.full((self.dim,), BOX, dtype=DTYPE)
+
+    @property
     def reward_range(self) -> tuple[float, float]:
         """``(b, b + h)``: every value of f lies in it."""
         return self.offset, self.offset + self.height
@@ -240,7 +252,9 @@ def case_seeds(dim: int, k: int, seed: int) -> tuple[int, int]:
 
 # ------------------------------------------------------------------------------------- methods
 # A runner takes (landscape, sorted budgets, seed) and returns, per budget, the returned
-# solutions [n, D] and the trials used when they were taken.
+# solutions [n, D] and the trials used when they were taken. The peers' runners (IPOP-CMA-ES,
+# NMMSO) take any problem with ``dim``, ``lower`` and ``upper`` (``[D]`` box corners) and
+# ``__call__(theta [B, D]) -> [B]``, so that benchmarks/bench_niching.py runs them too.
 Snapshots = dict[int, tuple[Tensor, int]]
 
 
@@ -267,7 +281,9 @@ def _start(landscape: Landscape) -> tuple[Tensor, Tensor]:
 
 def run_dipole(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
     theta0, sigma_start = _start(landscape)
-    opt = Dipole(theta0, sigma_start, generator=torch.Generator().manual_seed(seed))
+    opt = Dipole(
+        theta0, sigma_start, bounds=(-BOX, BOX), generator=torch.Generator().manual_seed(seed)
+    )
     return _run_ask_tell(opt, landscape, budgets)
 
 
@@ -278,6 +294,7 @@ def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) ->
         theta0,
         sigma_start,
         reward_range=landscape.reward_range,
+        bounds=(-BOX, BOX),
         generator=torch.Generator().manual_seed(seed),
     )
     return _run_ask_tell(opt, landscape, budgets)
@@ -290,6 +307,7 @@ def run_power(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapsh
         sigma_start,
         reward_range=landscape.reward_range,
         exploration_decay=0.98,
+        bounds=(-BOX, BOX),
         generator=torch.Generator().manual_seed(seed),
     )
     return _run_ask_tell(opt, landscape, budgets)
@@ -308,15 +326,34 @@ def _global_rngs(seed: int) -> Iterator[None]:
         np.random.set_state(saved[1])
 
 
-CMA_TOLX = 1e-3 * SIGMA0
+CMA_TOLX = 1e-3  # restart once the step size is below this times sigma0
+
+
+def _cma_box(problem) -> tuple[list, float, list[float] | None, int]:
+    """pycma's view of the problem's box: ``bounds`` (numbers when every axis shares them,
+    as on the landscapes), sigma0 (a quarter of the widest side), ``CMA_stds`` (each side's
+    quarter relative to sigma0, ``None`` when all sides are equal) and the dimension pycma
+    searches. pycma refuses one dimension, so a 1-D problem gets a second, unused
+    coordinate in [−1, 1] (pycma's own advice)."""
+    lower, upper = problem.lower.tolist(), problem.upper.tolist()
+    if problem.dim == 1:
+        lower, upper = lower + [-1.0], upper + [1.0]
+    widths = [hi - lo for lo, hi in zip(lower, upper, strict=True)]
+    sigma0 = max(widths) / 4.0
+    same = len(set(lower)) == 1 and len(set(upper)) == 1
+    bounds = [lower[0], upper[0]] if same else [lower, upper]
+    stds = None if len(set(widths)) == 1 else [w / 4.0 / sigma0 for w in widths]
+    return bounds, sigma0, stds, len(lower)
 
 
 def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
     import cma
 
     d = landscape.dim
+    bounds, sigma0, stds, searched = _cma_box(landscape)
+    lower, upper = np.array(bounds[0]), np.array(bounds[1])
     rng = np.random.default_rng(seed)
-    popsize = 4 + int(3 * math.log(d))
+    popsize = 4 + int(3 * math.log(searched))
     top = budgets[-1]
     used = restarts = 0
     bests: list[tuple[np.ndarray, float]] = []  # finished restarts' best (x, f)
@@ -330,7 +367,7 @@ def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> S
         warnings.simplefilter("ignore")  # pycma's notes on flat fitness etc.
         while used < top:
             options = {
-                "bounds": [-BOX, BOX],
+                "bounds": bounds,
                 "popsize": popsize * 2**restarts,  # IPOP: doubled at each restart
                 "seed": int(rng.integers(1, 2**31 - 1)),
                 "verbose": -9,
@@ -340,17 +377,19 @@ def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> S
                 # precision at which DIPOLE retires a policy), not at pycma's default 1e-11:
                 # converging further only spends trials that the next restart could use.
                 # No tolerance on f: the landscapes' scale spans 10^±3.
-                "tolx": CMA_TOLX,
+                "tolx": CMA_TOLX * sigma0,
                 "tolfun": 0.0,
                 "tolfunhist": 0.0,
             }
+            if stds is not None:
+                options["CMA_stds"] = stds
             restarts += 1
-            es = cma.CMAEvolutionStrategy(rng.uniform(-BOX, BOX, d), SIGMA0, options)
+            es = cma.CMAEvolutionStrategy(rng.uniform(lower, upper, searched), sigma0, options)
             best: tuple[np.ndarray, float] | None = None
             while used < top and not es.stop():
                 asked = es.ask()
                 n = min(len(asked), top - used)  # the first n fit the budget
-                x = np.array(asked[:n])
+                x = np.array(asked[:n])[:, :d]  # (a 1-D problem's unused coordinate dropped)
                 values = landscape(torch.as_tensor(x, dtype=DTYPE)).numpy()
                 for b in budgets:
                     if used < b <= used + n:  # best so far after exactly b evaluations
@@ -386,7 +425,7 @@ class _NmmsoProblem:
         self.snapshots: Snapshots = {}
 
     def get_bounds(self) -> tuple[list[float], list[float]]:
-        return [-BOX] * self.landscape.dim, [BOX] * self.landscape.dim
+        return self.landscape.lower.tolist(), self.landscape.upper.tolist()
 
     def modes(self) -> Tensor:
         swarms = sorted(self.nmmso.swarms, key=lambda s: s.id)
