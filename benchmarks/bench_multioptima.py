@@ -509,6 +509,18 @@ RUNNERS: dict[str, Callable[[Landscape, Sequence[int], int], Snapshots]] = {
 
 
 # ----------------------------------------------------------------------------------- one case
+def run_timed(runner, problem, budgets: Sequence[int], seed: int, method: str):
+    """``(snapshots, seconds)`` of ``runner(problem, budgets, seed)``; raises if a snapshot
+    used more trials than its budget."""
+    start = time.perf_counter()
+    snapshots = runner(problem, budgets, seed)
+    seconds = time.perf_counter() - start
+    for b in budgets:
+        if snapshots[b][1] > b:
+            raise AssertionError(f"{method} used {snapshots[b][1]} trials for budget {b}")
+    return snapshots, seconds
+
+
 def run_case(dim: int, k: int, seed: int, method: str, budgets: Sequence[int]) -> dict:
     """Run ``method`` on case (D, k, seed) up to the largest budget.
 
@@ -522,14 +534,10 @@ def run_case(dim: int, k: int, seed: int, method: str, budgets: Sequence[int]) -
         raise ValueError(f"budgets must be positive, got {budgets}")
     landscape_seed, method_seed = case_seeds(dim, k, seed)
     landscape = make_landscape(dim, k, landscape_seed)
-    start = time.perf_counter()
-    snapshots = RUNNERS[method](landscape, budgets, method_seed)
-    seconds = time.perf_counter() - start
+    snapshots, seconds = run_timed(RUNNERS[method], landscape, budgets, method_seed, method)
     results = {}
     for b in budgets:
         solutions, trials = snapshots[b]
-        if trials > b:
-            raise AssertionError(f"{method} used {trials} trials for budget {b}")
         results[str(b)] = {
             "found": int(landscape.found(solutions).sum()),
             "returned": int(solutions.shape[0]),
@@ -642,6 +650,54 @@ def summarize(cases: list[dict], methods, dims, ks, budgets) -> tuple[str, dict]
     return "\n".join(text), summary
 
 
+def _progress(i: int, n: int, case: dict) -> str:
+    tag = f"[{i}/{n}] D={case['dim']} k={case['k']} seed={case['seed']} {case['method']}"
+    if "error" in case:
+        return f"{tag}: ERROR {case['error']}"
+    found = ", ".join(f"{v['found']}/{case['k']} @{b}" for b, v in case["budgets"].items())
+    return f"{tag}: {found} ({case['seconds']:.1f} s)"
+
+
+def run_tasks(
+    task: Callable[[tuple], dict],
+    tasks: list[tuple],
+    workers: int,
+    progress: Callable[[int, int, dict], str],
+) -> tuple[list[dict], float]:
+    """``task`` on every item of ``tasks`` in ``workers`` spawned processes (one torch
+    thread each; 0: in this process, for debugging), a ``progress`` line on stderr as each
+    finishes. Returns the results in the order they finished and the wall seconds."""
+    start = time.perf_counter()
+    if workers == 0:
+        _init_worker()
+        pool, results = None, map(task, tasks)
+    else:
+        pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker)
+        results = pool.imap_unordered(task, tasks)
+    cases = []
+    for i, case in enumerate(results, 1):
+        cases.append(case)
+        print(progress(i, len(tasks), case), file=sys.stderr, flush=True)
+    if pool is not None:
+        pool.close()
+        pool.join()
+    return cases, time.perf_counter() - start
+
+
+def write_report(path: Path, config: dict, wall: float, summary: dict, cases: list) -> None:
+    """The JSON report: ``config`` (with the peers' versions), wall time, summary, cases."""
+    versions = {p: _version(p) for p in ("torch", "cma", "pynmmso")}
+    report = {
+        "config": config | {"versions": versions},
+        "wall_seconds": round(wall, 1),
+        "summary": summary,
+        "cases": cases,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {path}")
+
+
 def _version(package: str) -> str | None:
     try:
         return importlib.metadata.version(package)
@@ -674,53 +730,25 @@ def main(argv: Sequence[str] | None = None) -> None:
         ),
         key=lambda t: (cost.get(t[3], 4), -t[0], -t[1]),
     )
-    start = time.perf_counter()
-    cases = []
-    if args.workers == 0:  # in this process (for debugging)
-        _init_worker()
-        pool, results = None, map(_task, tasks)
-    else:
-        pool = multiprocessing.get_context("spawn").Pool(args.workers, initializer=_init_worker)
-        results = pool.imap_unordered(_task, tasks)
-    for i, case in enumerate(results, 1):
-        cases.append(case)
-        tag = f"[{i}/{len(tasks)}] D={case['dim']} k={case['k']} seed={case['seed']}"
-        if "error" in case:
-            print(f"{tag} {case['method']}: ERROR {case['error']}", file=sys.stderr, flush=True)
-        else:
-            found = ", ".join(f"{v['found']}/{case['k']} @{b}" for b, v in case["budgets"].items())
-            line = f"{tag} {case['method']}: {found} ({case['seconds']:.1f} s)"
-            print(line, file=sys.stderr, flush=True)
-    if pool is not None:
-        pool.close()
-        pool.join()
-    wall = time.perf_counter() - start
+    cases, wall = run_tasks(_task, tasks, args.workers, _progress)
     order = {m: i for i, m in enumerate(METHODS)}
     cases.sort(key=lambda c: (order[c["method"]], c["dim"], c["k"], c["seed"]))
     text, summary = summarize(cases, methods, args.dims, args.ks, budgets)
     print(text)
     print(f"\nwall time {wall:.1f} s on {args.workers} process(es)")
-    report = {
-        "config": {
-            "dims": args.dims,
-            "ks": args.ks,
-            "seeds": args.seeds,
-            "budgets": budgets,
-            "methods": methods,
-            "workers": args.workers,
-            "sigma0": SIGMA0,
-            "box": BOX,
-            "found_radius": FOUND_RADIUS,
-            "found_level": FOUND_LEVEL,
-            "versions": {p: _version(p) for p in ("torch", "cma", "pynmmso")},
-        },
-        "wall_seconds": round(wall, 1),
-        "summary": summary,
-        "cases": cases,
+    config = {
+        "dims": args.dims,
+        "ks": args.ks,
+        "seeds": args.seeds,
+        "budgets": budgets,
+        "methods": methods,
+        "workers": args.workers,
+        "sigma0": SIGMA0,
+        "box": BOX,
+        "found_radius": FOUND_RADIUS,
+        "found_level": FOUND_LEVEL,
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.json}")
+    write_report(args.json, config, wall, summary, cases)
 
 
 if __name__ == "__main__":

@@ -48,11 +48,7 @@ and budget, and each method's time. Everything, with per-run results, goes to ``
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import multiprocessing
-import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -239,14 +235,10 @@ def run_case(number: int, seed: int, method: str, budgets: Sequence[int]) -> dic
         raise ValueError(f"budgets must be positive, got {budgets}")
     problem = FUNCTIONS[number - 1]
     method_seed = 1000 * number + seed
-    start = time.perf_counter()
-    snapshots = RUNNERS[method](problem, budgets, method_seed)
-    seconds = time.perf_counter() - start
+    snapshots, seconds = peers.run_timed(RUNNERS[method], problem, budgets, method_seed, method)
     results = {}
     for b in budgets:
         solutions, trials = snapshots[b]
-        if trials > b:
-            raise AssertionError(f"{method} used {trials} trials for budget {b}")
         inside = (solutions >= problem.lower) & (solutions <= problem.upper)
         if not bool(inside.all()):
             raise AssertionError(f"{method} returned a solution outside the box")
@@ -265,6 +257,14 @@ def run_case(number: int, seed: int, method: str, budgets: Sequence[int]) -> dic
         "budgets": results,
         "seconds": round(seconds, 3),
     }
+
+
+def _progress(i: int, n: int, case: dict) -> str:
+    tag = f"[{i}/{n}] F{case['function']} seed={case['seed']} {case['method']}"
+    if "error" in case:
+        return f"{tag}: ERROR {case['error']}"
+    found = ", ".join(f"{v['found'][str(1e-3)]} @{b}" for b, v in case["budgets"].items())
+    return f"{tag}: {found} at 1e-3 ({case['seconds']:.1f} s)"
 
 
 def _task(args: tuple) -> dict:
@@ -335,49 +335,21 @@ def main(argv: Sequence[str] | None = None) -> None:
             parser.error(f"--functions takes numbers in 1..{len(FUNCTIONS)}, got {n}")
     # DIPOLE first (the slowest), so the processes finish together.
     tasks = [(n, s, m, budgets) for m in methods for n in numbers for s in range(args.seeds)]
-    start = time.perf_counter()
-    if args.workers == 0:
-        peers._init_worker()
-        pool, results = None, map(_task, tasks)
-    else:
-        context = multiprocessing.get_context("spawn")
-        pool = context.Pool(args.workers, initializer=peers._init_worker)
-        results = pool.imap_unordered(_task, tasks)
-    cases = []
-    for i, case in enumerate(results, 1):
-        cases.append(case)
-        tag = f"[{i}/{len(tasks)}] F{case['function']} seed={case['seed']} {case['method']}"
-        if "error" in case:
-            print(f"{tag}: ERROR {case['error']}", file=sys.stderr, flush=True)
-        else:
-            found = ", ".join(f"{v['found'][str(1e-3)]} @{b}" for b, v in case["budgets"].items())
-            print(f"{tag}: {found} at 1e-3 ({case['seconds']:.1f} s)", file=sys.stderr, flush=True)
-    if pool is not None:
-        pool.close()
-        pool.join()
-    wall = time.perf_counter() - start
+    cases, wall = peers.run_tasks(_task, tasks, args.workers, _progress)
     order = {m: i for i, m in enumerate(METHODS)}
     cases.sort(key=lambda c: (order[c["method"]], c["function"], c["seed"]))
     text, summary = summarize(cases, methods, numbers, budgets)
     print(text)
     print(f"wall time {wall:.1f} s on {args.workers} process(es)")
-    report = {
-        "config": {
-            "functions": numbers,
-            "seeds": args.seeds,
-            "budgets": budgets,
-            "methods": methods,
-            "accuracies": list(ACCURACIES),
-            "workers": args.workers,
-            "versions": {p: peers._version(p) for p in ("torch", "cma", "pynmmso")},
-        },
-        "wall_seconds": round(wall, 1),
-        "summary": summary,
-        "cases": cases,
+    config = {
+        "functions": numbers,
+        "seeds": args.seeds,
+        "budgets": budgets,
+        "methods": methods,
+        "accuracies": list(ACCURACIES),
+        "workers": args.workers,
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.json}")
+    peers.write_report(args.json, config, wall, summary, cases)
 
 
 if __name__ == "__main__":
