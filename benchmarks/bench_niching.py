@@ -154,12 +154,15 @@ class NichingFunction:
         x = solutions.to(DTYPE).reshape(-1, self.dim)
         values = self(x)
         order = torch.argsort(values, descending=True, stable=True)
-        seeds: list[Tensor] = []
-        count = 0
+        seeds = x.new_empty(x.shape[0], self.dim)
+        n_seeds = count = 0
         for i in order.tolist():
-            if seeds and bool(((torch.stack(seeds) - x[i]).norm(dim=-1) <= self.radius).any()):
+            if self.f_star - float(values[i]) > accuracy:
+                break  # sorted: no later solution is within the accuracy either
+            if n_seeds and bool(((seeds[:n_seeds] - x[i]).norm(dim=-1) <= self.radius).any()):
                 continue
-            seeds.append(x[i])
+            seeds[n_seeds] = x[i]
+            n_seeds += 1
             if abs(float(values[i]) - self.f_star) <= accuracy:
                 count += 1
                 if count == self.optima:
