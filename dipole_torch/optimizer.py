@@ -65,15 +65,14 @@ def make_reward_scale(reward_range: RewardRange, floor: float) -> RewardScale:
     return RewardScale(low, high, floor)
 
 
-Bounds = tuple[float | Tensor, float | Tensor] | None
+Bounds = tuple[float | list[float] | Tensor, float | list[float] | Tensor] | None
 
 
 def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
     """``(lower [D], upper [D])`` in float64 on ``theta0``'s device from ``bounds`` =
     ``(lower, upper)``, each a number, a list of D numbers or a ``[D]`` tensor (±inf: that
-    side is open), or
-    ``None`` (no box). Raises ``ValueError`` unless lower < upper on every axis and θ0 lies
-    inside."""
+    side is open), or ``None`` (no box). Raises ``ValueError`` unless lower < upper on every
+    axis and θ0 lies inside."""
     if bounds is None:
         return None
     try:
@@ -595,8 +594,9 @@ class Power(PolicySearch):
         min_exploration: floor of that factor, in (0, 1].
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
-        bounds: ``(lower, upper)`` box of the parameters (numbers or ``[D]`` tensors; ±inf
-            leaves a side open), or ``None``; see :class:`PolicySearch`.
+        bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or
+            ``[D]`` tensors; ±inf leaves a side open), or ``None``; see
+            :class:`PolicySearch`.
     """
 
     def __init__(
@@ -722,8 +722,9 @@ class Dipole(PolicySearch):
         hill_valley: vet candidates and neighbouring policies with midpoint probes.
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
-        bounds: ``(lower, upper)`` box of the parameters (numbers or ``[D]`` tensors; ±inf
-            leaves a side open), or ``None``; see :class:`PolicySearch`.
+        bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or
+            ``[D]`` tensors; ±inf leaves a side open), or ``None``; see
+            :class:`PolicySearch`.
 
     Choices where the paper is silent:
         * The prior H is built at the first clustering from the exploration distribution:
