@@ -333,8 +333,9 @@ def _cma_box(problem) -> tuple[list, float, list[float] | None, int]:
     """pycma's view of the problem's box: ``bounds`` (numbers when every axis shares them,
     as on the landscapes), sigma0 (a quarter of the widest side), ``CMA_stds`` (each side's
     quarter relative to sigma0, ``None`` when all sides are equal) and the dimension pycma
-    searches. pycma refuses one dimension, so a 1-D problem gets a second, unused
-    coordinate in [−1, 1] (pycma's own advice)."""
+    searches. pycma does not support 1-D optimization (it warns that it "may bail or work
+    poorly"), so a 1-D problem gets a second coordinate in [−1, 1] that the function
+    ignores."""
     lower, upper = problem.lower.tolist(), problem.upper.tolist()
     if problem.dim == 1:
         lower, upper = lower + [-1.0], upper + [1.0]

@@ -31,8 +31,9 @@ it is given on an unknown function in its box [l, u]:
 * **IPOP-CMA-ES** and **NMMSO**: ``bench_multioptima``'s runners on the box (pycma with its
   bounds, sigma0 a quarter of the widest side and ``CMA_stds`` for the others, restarts at
   1e-3·sigma0, population doubled at each restart; pynmmso with its defaults). Returned:
-  every restart's best; NMMSO's modes. pycma refuses 1-D problems, so on F1–F3 it searches
-  a second, unused coordinate as its documentation advises.
+  every restart's best; NMMSO's modes. pycma does not support 1-D optimization (it warns
+  that it "may bail or work poorly"), so on F1–F3 it searches a second coordinate that the
+  function ignores.
 * **random search**: uniform samples in the box. Returned: all of them (the count's seeding
   does the niching, so random search is credited with every optimum its archive touches).
 
