@@ -252,9 +252,10 @@ def case_seeds(dim: int, k: int, seed: int) -> tuple[int, int]:
 
 # ------------------------------------------------------------------------------------- methods
 # A runner takes (landscape, sorted budgets, seed) and returns, per budget, the returned
-# solutions [n, D] and the trials used when they were taken. The peers' runners (IPOP-CMA-ES,
-# NMMSO) take any problem with ``dim``, ``lower`` and ``upper`` (``[D]`` box corners) and
-# ``__call__(theta [B, D]) -> [B]``, so that benchmarks/bench_niching.py runs them too.
+# solutions [n, D] and the trials used when they were taken. The runners of DIPOLE,
+# IPOP-CMA-ES and NMMSO take any problem with ``dim``, ``lower`` and ``upper`` (``[D]`` box
+# corners) and ``__call__(theta [B, D]) -> [B]``, so that benchmarks/bench_niching.py runs
+# them too.
 Snapshots = dict[int, tuple[Tensor, int]]
 
 
@@ -273,41 +274,42 @@ def _run_ask_tell(opt, landscape: Landscape, budgets: Sequence[int]) -> Snapshot
     return snapshots
 
 
-def _start(landscape: Landscape) -> tuple[Tensor, Tensor]:
-    """θ0 = 0 (the box centre) and Σ_start = 2.5²·I."""
-    d = landscape.dim
-    return torch.zeros(d, dtype=DTYPE), SIGMA0**2 * torch.eye(d, dtype=DTYPE)
+def _start(problem) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+    """What an ask/tell method is told about a problem's box [l, u]: θ0 = its centre,
+    Σ_start = diag(((u − l)/4)²) and ``bounds`` = (l, u). On the landscapes: θ0 = 0,
+    Σ_start = 2.5²·I, bounds (−5, 5)."""
+    theta0 = 0.5 * (problem.lower + problem.upper)
+    sigma_start = torch.diag((0.25 * (problem.upper - problem.lower)).square())
+    return theta0, sigma_start, (problem.lower, problem.upper)
 
 
 def run_dipole(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
-    theta0, sigma_start = _start(landscape)
-    opt = Dipole(
-        theta0, sigma_start, bounds=(-BOX, BOX), generator=torch.Generator().manual_seed(seed)
-    )
+    theta0, sigma_start, bounds = _start(landscape)
+    opt = Dipole(theta0, sigma_start, bounds=bounds, generator=torch.Generator().manual_seed(seed))
     return _run_ask_tell(opt, landscape, budgets)
 
 
 def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
-    theta0, sigma_start = _start(landscape)
+    theta0, sigma_start, bounds = _start(landscape)
     build = getattr(Dipole, "paper", Dipole)  # the plain constructor until Dipole.paper exists
     opt = build(
         theta0,
         sigma_start,
         reward_range=landscape.reward_range,
-        bounds=(-BOX, BOX),
+        bounds=bounds,
         generator=torch.Generator().manual_seed(seed),
     )
     return _run_ask_tell(opt, landscape, budgets)
 
 
 def run_power(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
-    theta0, sigma_start = _start(landscape)
+    theta0, sigma_start, bounds = _start(landscape)
     opt = Power(
         theta0,
         sigma_start,
         reward_range=landscape.reward_range,
         exploration_decay=0.98,
-        bounds=(-BOX, BOX),
+        bounds=bounds,
         generator=torch.Generator().manual_seed(seed),
     )
     return _run_ask_tell(opt, landscape, budgets)

@@ -58,8 +58,6 @@ import bench_multioptima as peers  # the peers' runners and helpers (this script
 import torch
 from torch import Tensor
 
-from dipole_torch import Dipole
-
 ROOT = Path(__file__).resolve().parents[1]
 DTYPE = torch.float64
 METHODS = ("DIPOLE", "IPOP-CMA-ES", "NMMSO", "random search")
@@ -196,18 +194,6 @@ FUNCTIONS = (
 
 
 # ------------------------------------------------------------------------------------ methods
-def run_dipole(problem: NichingFunction, budgets: Sequence[int], seed: int) -> peers.Snapshots:
-    theta0 = 0.5 * (problem.lower + problem.upper)
-    sigma_start = torch.diag((0.25 * (problem.upper - problem.lower)).square())
-    opt = Dipole(
-        theta0,
-        sigma_start,
-        bounds=(problem.lower, problem.upper),
-        generator=torch.Generator().manual_seed(seed),
-    )
-    return peers._run_ask_tell(opt, problem, budgets)
-
-
 def run_random_search(
     problem: NichingFunction, budgets: Sequence[int], seed: int
 ) -> peers.Snapshots:
@@ -218,7 +204,7 @@ def run_random_search(
 
 
 RUNNERS: dict[str, Callable[[NichingFunction, Sequence[int], int], peers.Snapshots]] = {
-    "DIPOLE": run_dipole,
+    "DIPOLE": peers.run_dipole,
     "IPOP-CMA-ES": peers.run_ipop_cmaes,
     "NMMSO": peers.run_nmmso,
     "random search": run_random_search,
