@@ -326,6 +326,9 @@ class DipoleOptimizer:
     )
     merge_radius: float = _field(1.0, "drop a policy within this many exploration stds of another")
     hill_valley: bool = _field(True, "vet new policies and neighbours by a midpoint evaluation")
+    pair_points: int = _field(
+        1, "probes between two neighbouring policies before the worse is dropped (1: midpoint)"
+    )
 
 
 @dataclass

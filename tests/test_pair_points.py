@@ -1,0 +1,95 @@
+"""The hill-valley test between neighbouring policies with several probes (Ursem 1999):
+a valley that lies nearer the worse policy than the midpoint is found, and one probe is the
+previous midpoint test, bit for bit."""
+
+import math
+
+import pytest
+import torch
+
+from dipole_torch import Dipole
+
+DTYPE = torch.float64
+
+
+def two_hills(theta: torch.Tensor) -> torch.Tensor:
+    """A wide hill of height 1 at 0 and a narrow one of height 0.9 at 3 (1-D): between a
+    point near the top of the first and one at 0.85 on the second, the valley lies at three
+    quarters of the way, and the midpoint (0.88 on the wide hill's slope) is above 0.85."""
+    x = theta[:, 0]
+    return torch.maximum(1.0 - 0.08 * x.abs(), 0.9 - 10.0 * (x - 3.0).abs())
+
+
+def with_two_policies(pair_points: int) -> Dipole:
+    """A started DIPOLE whose two active policies have best samples 0 and 3.005."""
+    opt = Dipole(
+        torch.tensor([1.5], dtype=DTYPE),
+        torch.tensor([[1.0]], dtype=DTYPE),
+        pair_points=pair_points,
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, two_hills(theta))
+    opt.policy_means = torch.tensor([[0.0], [3.005]], dtype=DTYPE)
+    opt.policy_covariances = torch.full((2, 1, 1), 0.01, dtype=DTYPE)
+    opt.active = torch.tensor([True, True])
+    opt.success = torch.full((2,), Dipole.TARGET_SUCCESS, dtype=DTYPE)
+    opt.paths = torch.zeros(2, 1, dtype=DTYPE)
+    opt.thetas = opt.policy_means.clone()
+    opt.rewards = two_hills(opt.thetas)
+    opt.owner = torch.arange(2)
+    return opt
+
+
+def judge_pairs(opt: Dipole) -> None:
+    opt._probe_pairs()
+    opt._judge_pairs(two_hills(opt.pair_probes))
+
+
+def test_three_probes_find_the_valley_near_the_worse_policy():
+    opt = with_two_policies(pair_points=3)
+    judge_pairs(opt)
+    assert opt.policy_means[:, 0].tolist() == [0.0, 3.005]
+
+
+def test_the_midpoint_alone_misses_it_and_drops_the_worse_policy():
+    opt = with_two_policies(pair_points=1)
+    judge_pairs(opt)
+    assert opt.policy_means[:, 0].tolist() == [0.0]
+
+
+def test_probes_lie_at_quarters_and_one_probe_is_the_midpoint_bit_for_bit():
+    opt = with_two_policies(pair_points=3)
+    opt._probe_pairs()
+    a, b = opt.thetas[0], opt.thetas[1]
+    expected = torch.stack([0.75 * a + 0.25 * b, 0.5 * (a + b), 0.25 * a + 0.75 * b])
+    torch.testing.assert_close(opt.pair_probes, expected, rtol=0, atol=1e-15)
+    opt = with_two_policies(pair_points=1)
+    opt.thetas = torch.tensor([[0.1], [2.9]], dtype=DTYPE)  # 0.1 + 2.9 rounds
+    opt._probe_pairs()
+    assert torch.equal(opt.pair_probes, 0.5 * (opt.thetas[:1] + opt.thetas[1:]))
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, float("nan"), "3"])
+def test_bad_pair_points_are_refused(bad):
+    with pytest.raises(ValueError, match="pair_points"):
+        Dipole(torch.zeros(2, dtype=DTYPE), torch.eye(2, dtype=DTYPE), pair_points=bad)
+
+
+def test_a_whole_run_with_three_pair_points_finds_every_optimum():
+    # sin⁶(5πx) on [0, 1], five equal optima: all five found and kept by 2000 trials, and
+    # every ask holds whole triples of pair probes.
+    opt = Dipole(
+        torch.tensor([0.5], dtype=DTYPE),
+        torch.tensor([[0.25**2]], dtype=DTYPE),
+        bounds=(0.0, 1.0),
+        pair_points=3,
+        generator=torch.Generator().manual_seed(0),
+    )
+    while opt.trials < 2000:
+        theta = opt.ask()
+        opt.tell(theta, torch.sin(5.0 * math.pi * theta[:, 0]).pow(6))
+        assert opt.pair_probes.shape[0] == 3 * opt.pair_index.shape[0]
+    means = opt.policy_means[:, 0]
+    for top in (0.1, 0.3, 0.5, 0.7, 0.9):
+        assert (means - top).abs().min() < 1e-3, top
