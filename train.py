@@ -434,6 +434,7 @@ def main(cfg: DictConfig) -> dict:
     reward_range = tuple(task.reward_range) if cfg.algo.use_task_reward_range else None
     optimizer = instantiate(
         cfg.algo.optimizer,
+        _convert_="all",  # bounds as plain lists
         theta0=task.theta0.double(),
         sigma_start=task.sigma_start.double(),
         n0=cfg.task.n0,

@@ -298,6 +298,10 @@ _REGULARIZATION = "DP component covariance floor, fraction of diag(sigma_start)"
 _REWARD_FLOOR = "smallest reward weight"
 _REWARD_WEIGHTED = "eq. 6 (false: eq. 5, an ablation)"
 _PRIOR_DF = "nu0 of the inverse-Wishart prior (> D + 2); null: D + 3"
+_BOUNDS = (
+    "box of theta, [lower, upper]: each a number or a list of D numbers (null: no box; "
+    "asked rows are clipped into it)"
+)
 
 
 @dataclass
@@ -329,6 +333,7 @@ class DipoleOptimizer:
     pair_points: int = _field(
         1, "probes between two neighbouring policies before the worse is dropped (1: midpoint)"
     )
+    bounds: Any = _field(None, _BOUNDS)
 
 
 @dataclass
@@ -357,6 +362,7 @@ class DipolePaperOptimizer:
     reward_floor: float = _field(0.001, _REWARD_FLOOR)
     reward_weighted: bool = _field(True, _REWARD_WEIGHTED)
     prior_df: float | None = _field(None, _PRIOR_DF)
+    bounds: Any = _field(None, _BOUNDS)
 
 
 @dataclass
@@ -381,6 +387,7 @@ class PowerOptimizer:
         1.0, "1: fixed sigma_start (the paper's PoWER); < 1: shrink every iteration"
     )
     min_exploration: float = _field(0.01, "floor of the shrink factor")
+    bounds: Any = _field(None, _BOUNDS)
 
 
 @dataclass

@@ -351,3 +351,25 @@ def test_unknown_algo_and_bad_algo_parameters():
     cfg = compose_config("algo.optimizer.alpha=-1")
     with pytest.raises(Exception, match=r"alpha \(DP concentration\) must be positive"):
         instantiate(cfg.algo.optimizer, theta0=torch.zeros(2), sigma_start=torch.eye(2))
+
+
+def test_a_box_from_the_command_line_holds_every_sample(tmp_path):
+    # multimodal's optima lie on a circle of radius 1 around 0; a box [-1, 1] × [-2, 0.5]
+    # set on the command line (lists per axis) is passed to the optimizer as plain lists.
+    train(
+        "task=multimodal",
+        "algo=power",
+        "trials=60",
+        "algo.optimizer.bounds=[[-1,-2],[1,0.5]]",
+        f"hydra.run.dir={tmp_path}",
+    )
+    checkpoint = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    thetas = checkpoint["optimizer"]["thetas"]
+    lower = torch.tensor([-1.0, -2.0], dtype=thetas.dtype)
+    upper = torch.tensor([1.0, 0.5], dtype=thetas.dtype)
+    assert thetas.shape[0] > 0 and bool(((thetas >= lower) & (thetas <= upper)).all())
+    cfg = compose_config("algo.optimizer.bounds=[1,-1]")
+    with pytest.raises(Exception, match="bounds must have lower < upper on every axis"):
+        instantiate(
+            cfg.algo.optimizer, _convert_="all", theta0=torch.zeros(2), sigma_start=torch.eye(2)
+        )
