@@ -100,7 +100,13 @@ RESUME_MAY_CHANGE = (
 )
 # Keys added to the configs after checkpoints were written, with the values that reproduce
 # the runs that wrote them: such a checkpoint resumes (where this config has the key).
-ADDED_KEYS = {"task.env.obstacles": [], "task.env.penetration_scale": 0.02, "task.block": None}
+ADDED_KEYS = {
+    "task.env.obstacles": [],
+    "task.env.penetration_scale": 0.02,
+    "task.block": None,
+    "algo.optimizer.pair_points": 1,
+    "algo.optimizer.bounds": None,
+}
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
 MOVED_PREFIXES = {"tasks.": "dipole_torch.tasks."}

@@ -146,6 +146,22 @@ def test_a_checkpoint_naming_the_old_task_module_resumes(tmp_path):
     assert json.loads((run / "results.json").read_text())["trials"] == 40
 
 
+def test_a_checkpoint_from_before_pair_points_and_bounds_resumes(tmp_path):
+    """Checkpoints written before algo.optimizer.pair_points and .bounds existed lack them:
+    they resume with their defaults (the midpoint test, no box)."""
+    run = tmp_path / "run"
+    common = ("task=multimodal", "algo=dipole", "figure_every=0")
+    train(*common, "trials=20", f"hydra.run.dir={run}")
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
+    lines = checkpoint["config"].splitlines()
+    old = [x for x in lines if x.strip() not in ("pair_points: 1", "bounds: null")]
+    assert len(old) == len(lines) - 2
+    checkpoint["config"] = "\n".join(old) + "\n"
+    torch.save(checkpoint, run / "checkpoint.pt")
+    train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
+    assert json.loads((run / "results.json").read_text())["trials"] == 40
+
+
 def test_the_resume_command_names_the_command_that_ran(monkeypatch):
     from train import resume_command
 
