@@ -106,6 +106,7 @@ ADDED_KEYS = {
     "task.block": None,
     "algo.optimizer.pair_points": 1,
     "algo.optimizer.bounds": None,
+    "task.env.engine": "auto",
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.

@@ -3,9 +3,12 @@ viapoint task on both of its kinematics paths.
 
 Environment steps per second, linear policy included, for B parallel episodes:
 
-* ``torch``: :meth:`dipole_torch.tasks.cartpole.CartPoleTask.evaluate` (one batched rollout, 1000
-  steps), eager and with ``compile=True`` (its one-off compilation, ~1 min on CPU the first time, is
-  excluded from the timing: the warm-up call pays it),
+* ``torch``: :meth:`dipole_torch.tasks.cartpole.CartPoleTask.evaluate` with ``engine="torch"`` (one
+  batched rollout, 1000 steps), eager and with ``compile=True`` (its one-off compilation, ~1 min on
+  CPU the first time, is excluded from the timing: the warm-up call pays it),
+* ``python``: the same ``evaluate`` with ``engine="python"``, the CPU default (one episode at a
+  time in Python floats; the LQR gain balances, so no episode stops early; at most 1000 episodes
+  are timed, the rate being the same for any B),
 * ``gym single``: ``gymnasium.make("CartPole-v1")`` stepped B times in a Python loop
   (the policy evaluated per step in numpy),
 * ``gym SyncVectorEnv``: ``gymnasium.vector.SyncVectorEnv`` of B CartPole-v1 copies,
@@ -51,8 +54,10 @@ def steps_per_second(run, total_steps: int, repeats: int = 3) -> float:
     return total_steps / best
 
 
-def bench_torch(batch: int, steps: int, device: str, compile: bool = False) -> float:
-    task = CartPoleTask(steps=steps, device=device, compile=compile)
+def bench_ours(
+    batch: int, steps: int, device: str, compile: bool = False, engine: str = "torch"
+) -> float:
+    task = CartPoleTask(steps=steps, device=device, compile=compile, engine=engine)
     theta = torch.as_tensor(THETA, dtype=torch.float32).expand(batch, 4).contiguous()
     generator = torch.Generator().manual_seed(0)
     task.evaluate(theta[:2], generator)  # warm-up (and compilation)
@@ -164,17 +169,20 @@ def bench_cartpole(args: argparse.Namespace) -> None:
         f"{torch.get_num_threads()} torch threads, {steps} steps per episode"
     )
     header = (
-        f"{'B':>6} | {'implementation':<20} | {'steps':>9} | {'env steps/s':>12} | "
+        f"{'B':>6} | {'implementation':<24} | {'steps':>9} | {'env steps/s':>12} | "
         "torch ÷ it | compiled ÷ it"
     )
     print(header)
     print("-" * len(header))
     for batch in (1, 100, 10000):
         results: list[tuple[str, int, float]] = []
-        results.append(("torch (ours)", steps, bench_torch(batch, steps, args.device)))
+        results.append(("torch (ours)", steps, bench_ours(batch, steps, args.device)))
         if not args.no_compile:
-            rate = bench_torch(batch, steps, args.device, compile=True)
+            rate = bench_ours(batch, steps, args.device, compile=True)
             results.append(("torch compiled", steps, rate))
+        episodes = min(batch, 1000)  # one at a time: the rate does not depend on B
+        rate = bench_ours(episodes, steps, args.device, engine="python")
+        results.append((f"python (ours, B={episodes})", steps, rate))
         single_batch = min(batch, 100)  # a Python loop over envs: B=10000 would take minutes
         results.append(
             (
@@ -196,12 +204,13 @@ def bench_cartpole(args: argparse.Namespace) -> None:
         compiled = results[1][2] if not args.no_compile else float("nan")
         for name, n_steps, rate in results:
             print(
-                f"{batch:>6} | {name:<20} | {n_steps:>9} | {rate:>12.3e} | "
+                f"{batch:>6} | {name:<24} | {n_steps:>9} | {rate:>12.3e} | "
                 f"{ours / rate:9.2f}x | {compiled / rate:12.2f}x"
             )
     print(
         "steps = time steps per episode measured (SyncVectorEnv at B=10000: 50 only; "
-        "'gym single' loops over at most 100 envs one after the other)."
+        "'gym single' loops over at most 100 envs one after the other, 'python' over at "
+        "most 1000 episodes)."
     )
 
 

@@ -131,6 +131,12 @@ class MultimodalTask(TaskConfig):
     )
 
 
+_ENGINE_HELP = (
+    "how episodes run: python (one at a time in Python floats, stopped once settled), torch "
+    "(one batched rollout on the device), auto (torch on an accelerator, else python)"
+)
+
+
 @dataclass
 class CartPoleEnv:
     _target_: str = _field("dipole_torch.tasks.cartpole.CartPoleTask", "the task's class")
@@ -145,6 +151,7 @@ class CartPoleEnv:
         [1.0, 1.0, 20.0, 3.0], "per-gain exploration std: sigma_start = diag(std^2)"
     )
     default_seed: int = _field(0, "seed of the random start when evaluate gets no generator")
+    engine: str = _field("auto", _ENGINE_HELP)
 
 
 @dataclass
@@ -174,6 +181,7 @@ class MountainCarEnv:
         [1.0, 1.0, 10.0, 100.0], "per-parameter exploration std: sigma_start = diag(std^2)"
     )
     default_seed: int = _field(0, "seed of the random start when evaluate gets no generator")
+    engine: str = _field("auto", _ENGINE_HELP)
 
 
 @dataclass

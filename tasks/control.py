@@ -20,10 +20,27 @@ class ControlTask(EpisodicTask):
     state_dim: int
     default_seed: int
 
+    engine: str  # "python" or "torch", as resolved by choose_engine
+
     def sample_initial_state(
         self, batch_size: int, generator: torch.Generator | None = None
     ) -> Tensor:
         raise NotImplementedError
+
+    def _episode(self, gains: list[float], start: list[float]) -> float:
+        """The return of one episode of the policy ``gains`` from ``start``, in Python floats
+        (the ``"python"`` engine)."""
+        raise NotImplementedError
+
+    def _episodes(self, theta: Tensor, state: Tensor) -> Tensor:
+        """``[B]`` returns of the ``"python"`` engine: :meth:`_episode` for each row of
+        ``theta: [B, D]`` and ``state: [B, S]``, as a tensor of the task's dtype and device.
+
+        One episode at a time: a result cannot depend on the other rows of the batch, and an
+        episode stops as soon as its return is settled."""
+        rows = zip(theta.tolist(), state.tolist(), strict=True)
+        returns = [self._episode(gains, start) for gains, start in rows]
+        return torch.tensor(returns, dtype=self.dtype, device=self.device)
 
     def _initial_states(
         self, batch_size: int, generator: torch.Generator | None, initial_state: Tensor | None
@@ -38,6 +55,21 @@ class ControlTask(EpisodicTask):
             default = torch.Generator().manual_seed(self.default_seed)
             return self.sample_initial_state(1, default).expand(batch_size, -1).clone()
         return self.sample_initial_state(batch_size, generator)
+
+
+ENGINES = ("auto", "python", "torch")
+
+
+def choose_engine(engine: str, device: torch.device, compile: bool) -> str:
+    """Resolve a control task's ``engine``: ``"auto"`` is ``"torch"`` on an accelerator or
+    with ``compile``, else ``"python"``; a bad name, or ``compile`` without torch, raises."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {', '.join(map(repr, ENGINES))}, got {engine!r}")
+    if engine == "auto":
+        return "torch" if compile or device.type != "cpu" else "python"
+    if engine == "python" and compile:
+        raise ValueError("compile=True compiles the torch rollout: it needs engine='torch'")
+    return engine
 
 
 def check_positive_int(**values: int) -> None:

@@ -9,6 +9,7 @@ import torch
 from dipole_torch.tasks.control import (
     ControlTask,
     check_positive_int,
+    choose_engine,
     compiled,
     single_threaded,
     start_distribution,
@@ -36,8 +37,10 @@ class MountainCarTask(ControlTask):
     full-forward / full-backward choice), so ``D = 4``. The policy is invariant to a positive
     rescaling of ``θ``.
 
-    :meth:`evaluate` runs one episode per row of ``theta: [B, 4]`` as a single batched torch
-    rollout; the same :meth:`step` drives the gymnasium environment ``dipole/MountainCar-v0``
+    :meth:`evaluate` runs one episode per row of ``theta: [B, 4]``, on the CPU by default one
+    at a time in Python floats, each stopping at the goal (``engine="python"``), else as a
+    single batched torch rollout (``"torch"``; see ``engine`` below); the torch :meth:`step`
+    drives the gymnasium environment ``dipole/MountainCar-v0``
     (:class:`dipole_torch.tasks.gym_envs.MountainCarEnv`).
 
     ## Action Space
@@ -81,10 +84,15 @@ class MountainCarTask(ControlTask):
     * ``exploration_std``: standard deviations of the initial exploration, a number or
       ``[4]``; ``sigma_start = diag(exploration_std²)`` (default ``[1, 1, 10, 100]``).
     * ``default_seed``: seed of the start used when ``generator`` is ``None`` (0).
-    * ``compile``, ``chunk``: run the rollout in chunks of ``chunk`` (10) steps, each through
-      ``torch.compile`` when ``compile`` is true (as
+    * ``engine``: ``"python"`` (one episode at a time in Python floats, double precision,
+      stopped at the goal), ``"torch"`` (one batched rollout in ``dtype`` on ``device``) or
+      ``"auto"`` (the default: ``"torch"`` on an accelerator or with ``compile``, else
+      ``"python"``), as :class:`dipole_torch.tasks.cartpole.CartPoleTask`'s.
+    * ``compile``, ``chunk``: run the torch rollout in chunks of ``chunk`` (10) steps, each
+      through ``torch.compile`` when ``compile`` is true (as
       :class:`dipole_torch.tasks.cartpole.CartPoleTask`).
-    * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32).
+    * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
+      given (``"cpu"``, float32).
 
     ## Deviations from the paper
 
@@ -131,6 +139,7 @@ class MountainCarTask(ControlTask):
         theta0: Tensor | list[float] | None = None,
         exploration_std: float | list[float] | Tensor = (1.0, 1.0, 10.0, 100.0),
         default_seed: int = 0,
+        engine: str = "auto",
         compile: bool = False,
         chunk: int = 10,
         device: str | torch.device = "cpu",
@@ -153,6 +162,7 @@ class MountainCarTask(ControlTask):
         self.compile = bool(compile)
         self.chunk = chunk
         self.device = torch.device(device)
+        self.engine = choose_engine(engine, self.device, self.compile)
         self.dtype = dtype
         self.reward_range = (0.0, float(steps))
         self.theta0, self.sigma_start = start_distribution(
@@ -226,6 +236,8 @@ class MountainCarTask(ControlTask):
         theta = self.check_theta(theta)
         batch_size = theta.shape[0]
         state = self._initial_states(batch_size, generator, initial_state)
+        if self.engine == "python":
+            return self._episodes(theta, state)
         with torch.inference_mode(), single_threaded(self.device, batch_size):
             x, velocity = state.T.contiguous().clone().unbind(0)
             gains = theta.T.contiguous().unbind(0)
@@ -274,3 +286,25 @@ class MountainCarTask(ControlTask):
             done.logical_or_(x >= self.goal_position)
             open_steps.add_(~done)
         return x, velocity, done, open_steps
+
+    def _episode(self, gains: list[float], start: list[float]) -> float:
+        """One episode of the ``"python"`` engine: the policy of :meth:`_advance_` and the
+        step of :meth:`_step_` in Python floats, stopped at the goal."""
+        gain_x, gain_x2, gain_xv, gain_xv2 = gains
+        x, velocity = start
+        if x >= self.goal_position:
+            return float(self.steps)  # at the goal before the first step
+        cos, alpha, beta, force = math.cos, self.alpha, self.beta, self.force
+        low, high, max_speed = self.min_position, self.max_position, self.max_speed
+        for t in range(self.steps):
+            # θᵀφ factored as x (θ0 + θ1 x + ẋ (θ2 + θ3 ẋ)), as in the torch rollout.
+            activation = ((gain_xv + gain_xv2 * velocity) * velocity + gain_x2 * x + gain_x) * x
+            velocity = velocity + alpha * (force if activation >= 0 else -force)
+            velocity = velocity - beta * cos(3 * x)
+            velocity = -max_speed if velocity < -max_speed else min(velocity, max_speed)
+            x = x + velocity
+            if x < low or x > high:  # hit a wall: stop there
+                x, velocity = (low if x < low else high), 0.0
+            if x >= self.goal_position:
+                return float(self.steps - t)  # the goal on step t + 1: 101 − (t + 1)
+        return 0.0

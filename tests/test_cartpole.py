@@ -9,6 +9,7 @@ import torch
 from dipole_torch.tasks.cartpole import CartPoleTask
 
 LQR_GAIN = [0.91, 2.14, 30.9, 7.9]  # discrete LQR, Q = diag(1, 1, 10, 1), R = 1
+ENGINES = pytest.mark.parametrize("engine", ["python", "torch"])
 
 
 def test_step_matches_gymnasium_cartpole_v1():
@@ -47,14 +48,16 @@ def test_pole_falls_freely_the_way_it_leans():
     assert state[0, 3].item() / 1e-3 == pytest.approx(rate**2 * task.tau, rel=1e-3)
 
 
-def test_upright_pole_at_rest_stays_and_scores_every_step():
-    task = CartPoleTask()
+@ENGINES
+def test_upright_pole_at_rest_stays_and_scores_every_step(engine):
+    task = CartPoleTask(engine=engine)
     r = task.evaluate(torch.tensor([[1.0, 2.0, 30.0, 5.0]]), initial_state=torch.zeros(4))
     assert r.item() == 1000.0
 
 
-def test_no_control_fails_and_return_counts_absorbing_penalty():
-    task = CartPoleTask(steps=200)
+@ENGINES
+def test_no_control_fails_and_return_counts_absorbing_penalty(engine):
+    task = CartPoleTask(steps=200, engine=engine)
     r = task.evaluate(torch.zeros(1, 4), initial_state=torch.tensor([0.0, 0.0, 0.04, 0.0]))
     # Manual rollout: +1 while |φ| < π/60, 0 in between, -1 from the failing step on.
     state, total, failed = torch.tensor([[0.0, 0.0, 0.04, 0.0]]), 0.0, False
@@ -68,8 +71,9 @@ def test_no_control_fails_and_return_counts_absorbing_penalty():
     assert -200 < r.item() < 0
 
 
-def test_returns_in_reward_range_and_good_policy_scores_high():
-    task = CartPoleTask()
+@ENGINES
+def test_returns_in_reward_range_and_good_policy_scores_high(engine):
+    task = CartPoleTask(engine=engine)
     generator = torch.Generator().manual_seed(0)
     theta = task.theta0 + torch.randn(500, 4, generator=generator) * task.sigma_start.diag().sqrt()
     r = task.evaluate(theta, generator)
@@ -80,8 +84,9 @@ def test_returns_in_reward_range_and_good_policy_scores_high():
     assert (good >= 990).all()
 
 
-def test_batch_independence():
-    task = CartPoleTask()
+@ENGINES
+def test_batch_independence(engine):
+    task = CartPoleTask(engine=engine)
     generator = torch.Generator().manual_seed(1)
     theta = torch.tensor(LQR_GAIN) + 5 * torch.randn(6, 4, generator=generator)
     batched = task.evaluate(theta)
@@ -95,8 +100,9 @@ def test_batch_independence():
     assert torch.equal(batched, alone)
 
 
-def test_determinism_and_generator():
-    task = CartPoleTask()
+@ENGINES
+def test_determinism_and_generator(engine):
+    task = CartPoleTask(engine=engine)
     theta = torch.tensor([[0.0, 0.0, 12.0, 1.0]]).expand(50, 4)
     assert torch.equal(task.evaluate(theta), task.evaluate(theta))
     one = task.evaluate(theta, torch.Generator().manual_seed(3))
@@ -111,6 +117,36 @@ def test_float64_matches_float32_for_robust_policy():
     r32 = CartPoleTask().evaluate(theta)
     r64 = CartPoleTask(dtype=torch.float64).evaluate(theta.double())
     assert r32.item() == r64.item()
+
+
+def test_engines_agree_on_random_policies_and_starts():
+    """The Python episodes and the batched torch rollout (float32 and float64) give the same
+    returns: the same physics, policy, failure test and counting (measured: 2000 of 2000
+    equal; a trajectory grazing a threshold may differ in the last bit, hence the margin)."""
+    generator = torch.Generator().manual_seed(0)
+    spread = torch.tensor([1.0, 1.0, 10.0, 3.0])
+    theta = torch.tensor(LQR_GAIN) + torch.randn(1000, 4, generator=generator) * spread
+    theta = torch.cat((theta, torch.randn(200, 4, generator=generator)))  # mostly failing
+    python = CartPoleTask(engine="python")
+    starts = python.sample_initial_state(theta.shape[0], generator)
+    returns = python.evaluate(theta, initial_state=starts)
+    assert returns.dtype == torch.float32 and 100 < (returns == 1000).sum() < 1000
+    assert (returns < 0).sum() > 200  # failures, stopped early, counted at -1 a step
+    for dtype in (torch.float32, torch.float64):
+        batched = CartPoleTask(engine="torch", dtype=dtype).evaluate(
+            theta.to(dtype), initial_state=starts.to(dtype)
+        )
+        assert (batched.float() == returns).float().mean() >= 0.995
+
+
+def test_engine_choice():
+    assert CartPoleTask().engine == "python"  # on the CPU
+    assert CartPoleTask(compile=True).engine == "torch"
+    assert CartPoleTask(engine="torch").engine == "torch"
+    with pytest.raises(ValueError, match="engine must be one of"):
+        CartPoleTask(engine="numpy")
+    with pytest.raises(ValueError, match="engine='torch'"):
+        CartPoleTask(engine="python", compile=True)
 
 
 @pytest.mark.parametrize(

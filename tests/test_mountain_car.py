@@ -7,6 +7,7 @@ import torch
 from dipole_torch.tasks.mountain_car import MountainCarTask
 
 PUMPING = [1.0, 1.0, -10.0, -100.0]  # reaches the goal within 60 steps from every start
+ENGINES = pytest.mark.parametrize("engine", ["python", "torch"])
 
 
 def test_step_follows_the_paper_equation():
@@ -28,8 +29,9 @@ def test_velocity_clipped_and_walls_stop_the_car():
     assert wall[0].tolist() == [-1.5, 0.0]
 
 
-def test_cannot_climb_directly_but_pumping_reaches_the_goal():
-    task = MountainCarTask()
+@ENGINES
+def test_cannot_climb_directly_but_pumping_reaches_the_goal(engine):
+    task = MountainCarTask(engine=engine)
     starts = torch.stack([torch.linspace(-0.6, -0.4, 21), torch.zeros(21)], dim=-1)
     always_forward = task.evaluate(torch.zeros(21, 4), initial_state=starts)  # sign(0) = +
     right_of_valley = starts[:, 0] > -0.52  # the valley floor is at -π/6 ≈ -0.524
@@ -39,8 +41,9 @@ def test_cannot_climb_directly_but_pumping_reaches_the_goal():
     assert (r >= 101 - 60).all() and (r <= 100).all()
 
 
-def test_return_counts_steps_to_goal():
-    task = MountainCarTask(dtype=torch.float64)
+@ENGINES
+def test_return_counts_steps_to_goal(engine):
+    task = MountainCarTask(dtype=torch.float64, engine=engine)
     theta = torch.tensor([PUMPING], dtype=torch.float64)
     state = torch.tensor([[-0.5, 0.0]], dtype=torch.float64)
     t = 0
@@ -51,8 +54,9 @@ def test_return_counts_steps_to_goal():
     assert r.item() == 101 - t
 
 
-def test_returns_in_reward_range_and_scale_invariance():
-    task = MountainCarTask()
+@ENGINES
+def test_returns_in_reward_range_and_scale_invariance(engine):
+    task = MountainCarTask(engine=engine)
     generator = torch.Generator().manual_seed(0)
     theta = torch.randn(2000, 4, generator=generator) * task.sigma_start.diag().sqrt()
     r = task.evaluate(theta, torch.Generator().manual_seed(1))
@@ -61,8 +65,9 @@ def test_returns_in_reward_range_and_scale_invariance():
     assert torch.equal(task.evaluate(theta[:50]), task.evaluate(theta[:50] * 7.5))
 
 
-def test_batch_independence_and_determinism():
-    task = MountainCarTask()
+@ENGINES
+def test_batch_independence_and_determinism(engine):
+    task = MountainCarTask(engine=engine)
     generator = torch.Generator().manual_seed(2)
     theta = torch.tensor(PUMPING) + torch.randn(8, 4, generator=generator) * torch.tensor(
         [0.5, 0.5, 5.0, 50.0]
@@ -79,6 +84,35 @@ def test_batch_independence_and_determinism():
         [task.evaluate(t[None], initial_state=s) for t, s in zip(theta, starts, strict=True)]
     )
     assert torch.equal(batched, alone)
+
+
+def test_engines_agree_on_random_policies_and_starts():
+    """The Python episodes and the batched torch rollout (float32 and float64) give the same
+    returns (measured: all equal; the margin allows a trajectory grazing the goal)."""
+    generator = torch.Generator().manual_seed(0)
+    spread = torch.tensor([0.5, 0.5, 5.0, 50.0])
+    theta = torch.tensor(PUMPING) + torch.randn(500, 4, generator=generator) * spread
+    python = MountainCarTask(engine="python")
+    theta = torch.cat(
+        (theta, torch.randn(500, 4, generator=generator) * python.sigma_start.diag().sqrt())
+    )
+    starts = python.sample_initial_state(theta.shape[0], generator)
+    returns = python.evaluate(theta, initial_state=starts)
+    assert (
+        returns.dtype == torch.float32 and (returns > 0).sum() > 300 and (returns == 0).sum() > 300
+    )
+    for dtype in (torch.float32, torch.float64):
+        batched = MountainCarTask(engine="torch", dtype=dtype).evaluate(
+            theta.to(dtype), initial_state=starts.to(dtype)
+        )
+        assert (batched.float() == returns).float().mean() >= 0.995
+
+
+def test_engine_choice():
+    assert MountainCarTask().engine == "python"  # on the CPU
+    assert MountainCarTask(compile=True).engine == "torch"
+    with pytest.raises(ValueError, match="engine must be one of"):
+        MountainCarTask(engine="jax")
 
 
 @pytest.mark.parametrize(
