@@ -7,10 +7,12 @@
 Each environment steps a batch of one state through its task's own torch physics
 (:meth:`dipole_torch.tasks.cartpole.CartPoleTask.step`,
 :meth:`dipole_torch.tasks.mountain_car.MountainCarTask.step`): there is no second copy of the
-dynamics, and a policy run in the environment earns the same undiscounted return as the batched
+dynamics, and a policy run in the environment earns the same undiscounted return as the task's
 :meth:`~dipole_torch.tasks.base.EpisodicTask.evaluate` from the same start (pass it with
-``reset(options={"initial_state": ...})``). Keyword arguments of ``gymnasium.make`` go to the task's
-constructor (``steps``, ``force_limit``, ``dtype``, ...).
+``reset(options={"initial_state": ...})``): bit for bit as its ``engine="torch"`` rollout, and as
+its default Python episodes (double precision) but where rounding moves a trajectory across a
+threshold. Keyword arguments of ``gymnasium.make`` go to the task's constructor (``steps``,
+``force_limit``, ``dtype``, ...).
 """
 
 from __future__ import annotations

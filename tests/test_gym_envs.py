@@ -34,8 +34,9 @@ def _gym_return(env, task, theta, initial_state, to_action):
     "theta",
     [[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 12.0, 1.0], [0.91, 2.14, 30.9, 7.9], [0.5, 0.3, 8.0, 0.2]],
 )
-def test_cartpole_env_return_equals_batched_rollout(theta):
-    env = gym.make("dipole/CartPole-v0", steps=300)
+@pytest.mark.parametrize("engine", ["torch", "python"])
+def test_cartpole_env_return_equals_batched_rollout(theta, engine):
+    env = gym.make("dipole/CartPole-v0", steps=300, engine=engine)
     task = env.unwrapped.task
     theta = torch.tensor(theta)
     start = task.sample_initial_state(1, torch.Generator().manual_seed(5))[0]
@@ -48,8 +49,9 @@ def test_cartpole_env_return_equals_batched_rollout(theta):
     "theta", [[0.0, 0.0, 0.0, 0.0], [1.0, 1.0, -10.0, -100.0], [0.5, 1.0, -10.0, -100.0]]
 )
 @pytest.mark.parametrize("x0", [-0.6, -0.45])
-def test_mountain_car_env_return_equals_batched_rollout(theta, x0):
-    env = gym.make("dipole/MountainCar-v0")
+@pytest.mark.parametrize("engine", ["torch", "python"])
+def test_mountain_car_env_return_equals_batched_rollout(theta, x0, engine):
+    env = gym.make("dipole/MountainCar-v0", engine=engine)
     task = env.unwrapped.task
     theta = torch.tensor(theta)
     start = np.array([x0, 0.0], dtype=np.float32)
