@@ -162,6 +162,21 @@ def test_a_checkpoint_from_before_pair_points_and_bounds_resumes(tmp_path):
     assert json.loads((run / "results.json").read_text())["trials"] == 40
 
 
+def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
+    """Checkpoints written before task.env.engine existed lack it: they resume with "auto"."""
+    run = tmp_path / "run"
+    common = ("task=cartpole", "algo=power", "figure_every=0", "task.env.steps=50")
+    train(*common, "trials=20", f"hydra.run.dir={run}")
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
+    lines = checkpoint["config"].splitlines()
+    old = [x for x in lines if x.strip() != "engine: auto"]
+    assert len(old) == len(lines) - 1
+    checkpoint["config"] = "\n".join(old) + "\n"
+    torch.save(checkpoint, run / "checkpoint.pt")
+    train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
+    assert json.loads((run / "results.json").read_text())["trials"] == 40
+
+
 def test_the_resume_command_names_the_command_that_ran(monkeypatch):
     from train import resume_command
 
