@@ -12,9 +12,11 @@ run on the same data: ``BayesianGaussianMixture(weight_concentration_prior_type=
 "dirichlet_process", n_components=10, covariance_type="full")`` fitted to its own
 convergence (tol 1e-3, max_iter 100). Printed: seconds and ARI against the true labels for
 both, our sweeps and seconds per sweep, and the time ratio ours / sklearn; then the same
-run with Favaro & Teh (2013)'s re-used auxiliary draws (``reuse_auxiliary=True``, CPU) (best of
-``--repeats`` seeds for the time, the ARI of that run). ``--device cuda`` runs our sampler
-on the GPU (its label loop never waits for the device within a chunk of points).
+run with Favaro & Teh (2013)'s re-used auxiliary draws (``reuse_auxiliary=True``, CPU), and
+with the slice sampler (``fit_dp_mixture(sampler="slice")``: every label drawn at once, from
+the same sequential start) (best of ``--repeats`` seeds for the time, the ARI of that run).
+``--device cuda`` runs Algorithm 8 and the slice sampler on the GPU (Algorithm 8's label loop
+never waits for the device within a chunk of points).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from sklearn.mixture import BayesianGaussianMixture
 from threadpoolctl import threadpool_limits
 
 from dipole_torch import NormalInverseWishartPrior, fit_dp_mixture, neal8_sweep
+from dipole_torch.slice_sampler import SliceChain, slice_sweep
 
 DTYPE = torch.float64
 
@@ -54,28 +57,37 @@ def prior_for(y: torch.Tensor) -> NormalInverseWishartPrior:
 
 
 def run_gibbs(
-    y: torch.Tensor, seed: int, max_sweeps: int, device: str = "cpu", reuse: bool = False
+    y: torch.Tensor, seed: int, max_sweeps: int, device: str = "cpu", sampler: str = "neal8"
 ) -> tuple[float, int, torch.Tensor]:
-    """(seconds, sweeps, ``[N]`` labels) of one run to convergence, on ``device``; ``reuse``:
-    Favaro & Teh's re-used auxiliary draws instead of Algorithm 8's fresh ones."""
+    """(seconds, sweeps, ``[N]`` labels) of one run to convergence, on ``device``; ``sampler``:
+    ``"neal8"`` (Algorithm 8), ``"reuse"`` (Favaro & Teh's re-used auxiliary draws instead of
+    Algorithm 8's fresh ones) or ``"slice"`` (the slice sampler)."""
     y = y.to(device)
     prior = prior_for(y)
     g = torch.Generator(device).manual_seed(seed)
     start = time.perf_counter()
-    state = fit_dp_mixture(y, prior, 1, generator=g, init="sequential", update_prior=False)
+    first = "slice" if sampler == "slice" else "neal8"
+    state = fit_dp_mixture(
+        y, prior, 1, generator=g, init="sequential", update_prior=False, sampler=first
+    )
+    chain = SliceChain.from_state(state) if sampler == "slice" else state
     elapsed = time.perf_counter() - start
     sweeps, settled = 1, 0
     while sweeps < max_sweeps and settled < 2:
-        previous = state.labels
+        previous = chain.labels
         start = time.perf_counter()
-        state = neal8_sweep(y, state, generator=g, update_prior=False, reuse_auxiliary=reuse)
+        if sampler == "slice":
+            chain = slice_sweep(y, chain, generator=g, update_prior=False)
+        else:
+            reuse = sampler == "reuse"
+            chain = neal8_sweep(y, chain, generator=g, update_prior=False, reuse_auxiliary=reuse)
         if device != "cpu":
             torch.cuda.synchronize()
         elapsed += time.perf_counter() - start
         sweeps += 1
-        same = adjusted_rand_score(previous.cpu().numpy(), state.labels.cpu().numpy()) >= 0.999
+        same = adjusted_rand_score(previous.cpu().numpy(), chain.labels.cpu().numpy()) >= 0.999
         settled = settled + 1 if same else 0
-    return elapsed, sweeps, state.labels.cpu()
+    return elapsed, sweeps, chain.labels.cpu()
 
 
 def run_sklearn(y: torch.Tensor, seed: int, threads: int) -> tuple[float, int, torch.Tensor]:
@@ -109,7 +121,8 @@ def main() -> None:
     header = (
         f"{'N':>6} {'D':>3} {'ours s':>8} {'sweeps':>6} {'s/sweep':>8} {'ours ARI':>8} "
         f"{'sklearn s':>9} {'EM its':>6} {'sk ARI':>6} {'ours/sklearn':>12} "
-        f"{'reuse s':>8} {'reuse ARI':>9} {'reuse/sklearn':>13}"
+        f"{'reuse s':>8} {'reuse ARI':>9} {'reuse/sklearn':>13} "
+        f"{'slice s':>8} {'slice ARI':>9} {'slice/sklearn':>13}"
     )
     warm_up, _ = make_data(200, 2)
     run_gibbs(warm_up, 0, 2, args.device)  # first-call costs (lazy init) out of the table
@@ -123,16 +136,22 @@ def main() -> None:
             ours = min(runs, key=lambda r: r[0])
             fits = (run_sklearn(y, s, args.threads) for s in range(args.repeats))
             theirs = min(fits, key=lambda r: r[0])
-            reruns = (run_gibbs(y, s, args.max_sweeps, "cpu", True) for s in range(args.repeats))
+            reruns = (run_gibbs(y, s, args.max_sweeps, "cpu", "reuse") for s in range(args.repeats))
             reuse = min(reruns, key=lambda r: r[0])
             reuse_ari = adjusted_rand_score(true.numpy(), reuse[2].numpy())
+            slices = (
+                run_gibbs(y, s, args.max_sweeps, args.device, "slice") for s in range(args.repeats)
+            )
+            slice_run = min(slices, key=lambda r: r[0])
+            slice_ari = adjusted_rand_score(true.numpy(), slice_run[2].numpy())
             ours_ari = adjusted_rand_score(true.numpy(), ours[2].numpy())
             their_ari = adjusted_rand_score(true.numpy(), theirs[2].numpy())
             print(
                 f"{n:>6} {d:>3} {ours[0]:>8.3f} {ours[1]:>6} {ours[0] / ours[1]:>8.4f} "
                 f"{ours_ari:>8.3f} {theirs[0]:>9.3f} {theirs[1]:>6} {their_ari:>6.3f} "
                 f"{ours[0] / theirs[0]:>12.2f} {reuse[0]:>8.3f} {reuse_ari:>9.3f} "
-                f"{reuse[0] / theirs[0]:>13.2f}",
+                f"{reuse[0] / theirs[0]:>13.2f} {slice_run[0]:>8.3f} {slice_ari:>9.3f} "
+                f"{slice_run[0] / theirs[0]:>13.2f}",
                 flush=True,
             )
 

@@ -17,6 +17,7 @@ from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.pyro_model import InverseWishart, dp_log_joint, dp_mixture_model
 from dipole_torch.reward import RewardScale
 from dipole_torch.sampling import draw
+from dipole_torch.slice_sampler import SliceChain, slice_sweep
 
 # The application around the library is dipole_torch.models, dipole_torch.tasks,
 # dipole_torch.configs and dipole_torch.train. A wheel installs them inside this package
@@ -40,6 +41,7 @@ __all__ = [
     "PolicySearch",
     "Power",
     "RewardScale",
+    "SliceChain",
     "dp_log_joint",
     "dp_mixture_model",
     "draw",
@@ -48,5 +50,6 @@ __all__ = [
     "neal8_sweep",
     "power_update",
     "reward_weights",
+    "slice_sweep",
 ]
 __version__ = "0.1.0"

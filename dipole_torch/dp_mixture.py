@@ -431,6 +431,7 @@ def fit_dp_mixture(
     update_prior: bool = True,
     exact_covariance: bool = True,
     reuse_auxiliary: bool = False,
+    sampler: str = "neal8",
 ) -> DPMixtureState:
     """Run ``num_sweeps`` Gibbs sweeps and return the last state.
 
@@ -453,6 +454,10 @@ def fit_dp_mixture(
             "conjugate draw + R".
         reuse_auxiliary: Favaro & Teh's re-used auxiliary draws instead of Algorithm 8's
             fresh ones (:func:`neal8_sweep`); CPU only.
+        sampler: ``"neal8"`` -- Algorithm 8 (:func:`neal8_sweep`), the paper's sampler;
+            ``"slice"`` -- the slice sampler, every label drawn at once
+            (:func:`dipole_torch.slice_sampler.slice_sweep`; exact too, for large N and
+            GPUs; no reward weighting, ``m`` unused).
     """
     check_matrix_shape(y, (-1, prior.dim), "y")
     check_finite(y, "y")
@@ -461,6 +466,13 @@ def fit_dp_mixture(
     _check_concentration(alpha, m)
     if num_sweeps < 1:
         raise ValueError(f"num_sweeps must be >= 1, got {num_sweeps}")
+    if sampler not in ("neal8", "slice"):
+        raise ValueError(f"sampler must be 'neal8' or 'slice', got {sampler!r}")
+    if sampler == "slice" and (reward_weighted or reuse_auxiliary):
+        raise ValueError(
+            "sampler='slice' samples the unweighted DP mixture with its own draws: "
+            "reward_weighted and reuse_auxiliary must be False"
+        )
     y = y.to(DTYPE)
     if state is None:
         if init == "single":
@@ -474,6 +486,21 @@ def fit_dp_mixture(
         raise ValueError(
             f"state.labels must have shape [{y.shape[0]}], got {list(state.labels.shape)}"
         )
+    if sampler == "slice":
+        from dipole_torch.slice_sampler import SliceChain, slice_sweep
+
+        chain = SliceChain.from_state(state)
+        for _ in range(num_sweeps):
+            chain = slice_sweep(
+                y,
+                chain,
+                alpha,
+                generator,
+                initial_prior=prior,
+                update_prior=update_prior,
+                exact_covariance=exact_covariance,
+            )
+        return chain.state()
     for _ in range(num_sweeps):
         state = neal8_sweep(
             y,

@@ -27,6 +27,7 @@ from dipole_torch import (
     dp_mixture,
     neal8_sweep,
 )
+from dipole_torch.slice_sampler import SliceChain, slice_sweep
 
 F64 = torch.float64
 
@@ -161,6 +162,36 @@ def test_gibbs_matches_the_exact_partition_posterior(reg, psi0, reuse):
     frequency = torch.bincount(index, minlength=5).double().numpy() / sweeps
     margin = 4.0 * np.sqrt(2.0 * exact * (1.0 - exact) / sweeps)
     assert (np.abs(frequency - exact) < margin).all(), (exact, frequency, margin)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("reg, psi0", [(0.0, 1.0), (0.3, 0.05)])
+def test_slice_sampler_matches_the_exact_partition_posterior(reg, psi0):
+    """The slice sampler (every label at once, sticks and slices) samples the same posterior.
+
+    It mixes more slowly than Algorithm 8: batch means over 20 000-sweep chains gave
+    integrated autocorrelation times of 2 to 10 (frequencies then within 0.01 of the exact
+    ones). Margins over 3000 sweeps: 4 standard errors with τ = 12 per partition (0.022 to
+    0.12), and 0.08 for the total variation distance ½ Σ |f − p| (expected about 0.04 with
+    τ = 10). Ignoring the later sticks' counts in v_j's Beta moves it to 0.13 (8000 sweeps:
+    one cluster 0.22 for 0.14, singletons 0.19 for 0.32); weighting the label draw by w_j
+    on top of the slice fails too.
+    """
+    sweeps = 3000
+    exact = exact_partition_probabilities(Y, MU0, S0_SQ, NU0, psi0, reg, ALPHA)
+    y = torch.tensor(Y, dtype=F64)[:, None]
+    chain = SliceChain.from_state(DPMixtureState.single_component(y, fixed_prior(reg, psi0)))
+    g = torch.Generator().manual_seed(1)
+    labels = []
+    for i in range(100 + sweeps):
+        chain = slice_sweep(y, chain, ALPHA, g, update_prior=False)
+        if i >= 100:
+            labels.append(chain.labels)
+    frequency = torch.bincount(partition_index(torch.stack(labels)), minlength=5)
+    frequency = frequency.double().numpy() / sweeps
+    margin = 4.0 * np.sqrt(12.0 * exact * (1.0 - exact) / sweeps)
+    assert (np.abs(frequency - exact) < margin).all(), (exact, frequency, margin)
+    assert 0.5 * np.abs(frequency - exact).sum() < 0.08, (exact, frequency)
 
 
 def test_covariance_step_without_regularisation_is_the_gibbs_draw():
