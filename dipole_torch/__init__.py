@@ -10,7 +10,7 @@ from dipole_torch.dp_mixture import (
     reward_weights,
 )
 from dipole_torch.gaussian_mixture import GaussianMixture
-from dipole_torch.mcmc import Neal8Kernel
+from dipole_torch.mcmc import Neal8Kernel, SliceKernel
 from dipole_torch.optimizer import Dipole, PolicySearch, Power
 from dipole_torch.power import importance_sets, power_update
 from dipole_torch.prior import NormalInverseWishartPrior
@@ -42,6 +42,7 @@ __all__ = [
     "Power",
     "RewardScale",
     "SliceChain",
+    "SliceKernel",
     "dp_log_joint",
     "dp_mixture_model",
     "draw",

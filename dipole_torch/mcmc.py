@@ -1,4 +1,4 @@
-"""Neal's Algorithm 8 as a Pyro MCMC kernel.
+"""Neal's Algorithm 8, and the slice sampler, as Pyro MCMC kernels.
 
 ``pyro.infer.MCMC(Neal8Kernel(prior), num_samples=..., warmup_steps=...).run(y)`` runs the
 Gibbs sweeps of :func:`dipole_torch.neal8_sweep` with Pyro's progress bar, and keeps
@@ -22,9 +22,10 @@ from torch import Tensor
 from dipole_torch.dp_mixture import DTYPE, DPMixtureState, neal8_sweep, sequential_labels
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.pyro_model import canonical_state, dp_log_joint
+from dipole_torch.slice_sampler import SliceChain, slice_sweep
 from dipole_torch.validation import check_finite, check_matrix_shape
 
-__all__ = ["Neal8Kernel"]
+__all__ = ["Neal8Kernel", "SliceKernel"]
 
 
 class Neal8Kernel(MCMCKernel):
@@ -209,3 +210,77 @@ class Neal8Kernel(MCMCKernel):
         if "log_joint" in getattr(self, "save_params", ("log_joint",)):
             self._params["log_joint"] = dp_log_joint(self._y, state, self.alpha)
         return self._params
+
+
+class SliceKernel(Neal8Kernel):
+    """One step = one sweep of the slice sampler (:mod:`dipole_torch.slice_sampler`: every
+    label drawn at once; exact, for large N and GPUs), with :class:`Neal8Kernel`'s samples,
+    arguments and API. The sweeps are those of
+    ``fit_dp_mixture(..., sampler="slice")`` with the same generator. There is no ``m`` and
+    no reward weighting; the stick of every point (:attr:`chain`) is kept between steps.
+
+    Example:
+        >>> from pyro.infer import MCMC
+        >>> from dipole_torch import NormalInverseWishartPrior
+        >>> g = torch.Generator().manual_seed(0)
+        >>> y = torch.randn(400, 2, generator=g)
+        >>> y[:200] -= 3
+        >>> y[200:] += 3
+        >>> prior = NormalInverseWishartPrior.from_exploration(
+        ...     torch.zeros(2, dtype=torch.float64), 9 * torch.eye(2, dtype=torch.float64))
+        >>> kernel = SliceKernel(prior, init="sequential", generator=g)
+        >>> mcmc = MCMC(kernel, num_samples=10, warmup_steps=5, disable_progbar=True)
+        >>> mcmc.run(y)
+        >>> samples = mcmc.get_samples()  # labels [10, 400]; never fewer than the 2 groups
+        >>> samples["labels"].shape, bool(samples["num_components"].min() >= 2)
+        (torch.Size([10, 400]), True)
+    """
+
+    def __init__(
+        self,
+        prior: NormalInverseWishartPrior,
+        alpha: float = 1.0,
+        update_prior: bool = False,
+        exact_covariance: bool = True,
+        inner_steps: int = 2,
+        init: str = "single",
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__(
+            prior,
+            alpha,
+            update_prior=update_prior,
+            exact_covariance=exact_covariance,
+            inner_steps=inner_steps,
+            init=init,
+            generator=generator,
+        )
+        self._chain: SliceChain | None = None
+
+    def setup(self, warmup_steps: int, y: Tensor) -> None:
+        super().setup(warmup_steps, y)
+        self._chain = SliceChain.from_state(self.state)
+
+    @property
+    def chain(self) -> SliceChain:
+        """The slice sampler's current state (stick labels, every stick's atom, H)."""
+        if self._chain is None:
+            raise RuntimeError("the kernel has no state before setup(warmup_steps, y)")
+        return self._chain
+
+    def sample(self, params: dict[str, Tensor]) -> dict[str, Tensor]:
+        """One slice-sampler sweep from the current state."""
+        if self._chain is None or self._y is None:
+            raise RuntimeError("call setup(warmup_steps, y) before sample()")
+        self._chain = slice_sweep(
+            self._y,
+            self._chain,
+            self.alpha,
+            self.generator,
+            self.inner_steps,
+            initial_prior=self.prior,
+            update_prior=self.update_prior,
+            exact_covariance=self.exact_covariance,
+        )
+        self._num_sweeps += 1
+        return self._set_state(self._chain.state())

@@ -1,11 +1,12 @@
-"""Neal's Algorithm 8 as a Pyro MCMC kernel: run by pyro.infer.MCMC, same chain as the sweeps."""
+"""Neal's Algorithm 8 and the slice sampler as Pyro MCMC kernels: run by pyro.infer.MCMC, same
+chains as the sweeps."""
 
 import pytest
 import torch
 from pyro.infer import MCMC
 
 from dipole_torch import NormalInverseWishartPrior, fit_dp_mixture
-from dipole_torch.mcmc import Neal8Kernel
+from dipole_torch.mcmc import Neal8Kernel, SliceKernel
 from dipole_torch.pyro_model import canonical_state, dp_log_joint
 
 F64 = torch.float64
@@ -106,3 +107,33 @@ def test_bad_arguments_are_rejected():
     kernel.initial_params = {"labels": torch.zeros(5, dtype=torch.long)}
     with pytest.raises(ValueError, match="initial labels must have shape \\[24\\]"):
         kernel.setup(0, y)
+
+
+@pytest.mark.parametrize("update_prior", [False, True])
+def test_slice_kernel_runs_exactly_the_sweeps_of_fit_dp_mixture(update_prior):
+    y, prior = two_groups(n=40)
+    kernel = SliceKernel(
+        prior,
+        update_prior=update_prior,
+        init="sequential",
+        generator=torch.Generator().manual_seed(5),
+    )
+    mcmc = MCMC(kernel, num_samples=6, warmup_steps=4, disable_progbar=True)
+    mcmc.run(y)
+    direct = fit_dp_mixture(
+        y,
+        prior,
+        num_sweeps=10,
+        generator=torch.Generator().manual_seed(5),
+        init="sequential",
+        update_prior=update_prior,
+        sampler="slice",
+    )
+    assert torch.equal(kernel.state.labels, direct.labels)
+    assert torch.equal(kernel.state.means, direct.means)
+    assert torch.equal(kernel.state.prior.scale, direct.prior.scale)
+    assert kernel.chain.means.shape[0] > int(kernel.chain.labels.max())
+    labels = mcmc.get_samples()["labels"]
+    assert labels.shape == (6, 80) and (labels[:, :40, None] != labels[:, None, 40:]).all()
+    with pytest.raises(RuntimeError, match="setup"):
+        SliceKernel(prior).sample({})
