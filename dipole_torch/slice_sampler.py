@@ -53,6 +53,7 @@ from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.sampling import _to, draw_categorical
 
 _STICK_BLOCK = 8  # sticks drawn at a time when the slices need more
+_MAX_STICKS = 2**16  # about α·log(1 / min u) are needed: far more means α is huge
 
 
 @dataclass
@@ -153,6 +154,11 @@ def slice_sweep(
     lowest = float(log_u.min())
     left = float(log_rest.sum())
     while left >= lowest:
+        if log_w.shape[0] >= _MAX_STICKS:
+            raise ValueError(
+                f"alpha={alpha} needs more than {_MAX_STICKS} sticks to cover these slices; "
+                "the slice sampler suits a concentration of order 1 to 100"
+            )
         ones = torch.ones(_STICK_BLOCK, dtype=DTYPE, device=y.device)
         more_v, more_rest = _log_beta(ones, alpha * ones, generator)
         log_w = torch.cat((log_w, left + more_v + _exclusive_cumsum(more_rest)))

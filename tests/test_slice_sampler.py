@@ -86,6 +86,8 @@ def test_bad_input_is_refused():
     chain = SliceChain.from_state(DPMixtureState.single_component(y, prior))
     with pytest.raises(ValueError, match="alpha"):
         slice_sweep(y, chain, alpha=0.0)
+    with pytest.raises(ValueError, match="sticks"):  # rather than a loop without end
+        slice_sweep(y, chain, alpha=1e9, generator=torch.Generator().manual_seed(0))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
