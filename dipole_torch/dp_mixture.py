@@ -571,7 +571,8 @@ class DPMixture:
 
     H stays at ``prior`` by default (``update_prior=False``): the chain samples the DP mixture
     posterior under that base distribution. ``update_prior=True`` redraws H's hyperparameters
-    after every sweep, as DIPOLE does (:func:`fit_dp_mixture`'s default).
+    after every sweep, as DIPOLE does (:func:`fit_dp_mixture`'s default). ``sampler="slice"``
+    samples it with the slice sampler (every label at once) instead of Algorithm 8.
 
     Example:
         >>> g = torch.Generator().manual_seed(2)
@@ -595,6 +596,7 @@ class DPMixture:
         reward_weighted: bool = False,
         update_prior: bool = False,
         exact_covariance: bool = True,
+        sampler: str = "neal8",
     ):
         self.prior = prior
         self.alpha = alpha
@@ -602,6 +604,7 @@ class DPMixture:
         self.reward_weighted = reward_weighted
         self.update_prior = update_prior
         self.exact_covariance = exact_covariance
+        self.sampler = sampler
 
     def fit(
         self,
@@ -623,6 +626,7 @@ class DPMixture:
             init,
             update_prior=self.update_prior,
             exact_covariance=self.exact_covariance,
+            sampler=self.sampler,
         )
 
 

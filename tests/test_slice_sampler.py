@@ -5,7 +5,7 @@ import pytest
 import torch
 from sklearn.metrics import adjusted_rand_score
 
-from dipole_torch import DPMixtureState, NormalInverseWishartPrior, fit_dp_mixture
+from dipole_torch import DPMixture, DPMixtureState, NormalInverseWishartPrior, fit_dp_mixture
 from dipole_torch.slice_sampler import SliceChain, slice_sweep
 
 F64 = torch.float64
@@ -39,6 +39,24 @@ def test_recovers_separated_clusters(d):
     for c in range(4):
         points = y[state.labels == c]
         assert (state.means[c] - points.mean(0)).norm() < 0.5
+
+
+def test_dp_mixture_wrapper_takes_the_sampler():
+    y, truth, prior = clusters(400, 2, seed=1)
+    fit = DPMixture(prior, sampler="slice").fit(
+        y, 5, generator=torch.Generator().manual_seed(0), init="sequential"
+    )
+    direct = fit_dp_mixture(
+        y,
+        prior,
+        5,
+        generator=torch.Generator().manual_seed(0),
+        init="sequential",
+        update_prior=False,
+        sampler="slice",
+    )
+    assert torch.equal(fit.labels, direct.labels)
+    assert adjusted_rand_score(truth.numpy(), fit.labels.numpy()) > 0.95  # tail points aside
 
 
 def test_chain_keeps_stick_labels_and_is_reproducible():
