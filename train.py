@@ -106,6 +106,9 @@ ADDED_KEYS = {
     "task.block": None,
     "algo.optimizer.pair_points": 1,
     "algo.optimizer.bounds": None,
+    # The one exception: runs from before the engines rolled out in torch, and resume with
+    # the default engine (on a CPU the Python episodes, whose returns differ from torch's
+    # only where rounding moves a trajectory across a threshold).
     "task.env.engine": "auto",
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
