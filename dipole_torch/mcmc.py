@@ -166,9 +166,15 @@ class Neal8Kernel(MCMCKernel):
         mirror it."""
         if self._state is None or self._y is None:
             raise RuntimeError("call setup(warmup_steps, y) before sample()")
-        state = neal8_sweep(
-            self._y,
-            self._state,
+        state = self._sweep(self._y)
+        self._num_sweeps += 1
+        return self._set_state(state)
+
+    def _sweep(self, y: Tensor) -> DPMixtureState:
+        """One sweep of Algorithm 8 from the current state; the new state."""
+        return neal8_sweep(
+            y,
+            self.state,
             self.alpha,
             self.m,
             self.reward_weighted,
@@ -178,8 +184,6 @@ class Neal8Kernel(MCMCKernel):
             update_prior=self.update_prior,
             exact_covariance=self.exact_covariance,
         )
-        self._num_sweeps += 1
-        return self._set_state(state)
 
     def logging(self) -> dict[str, int]:
         """Shown next to Pyro's progress bar: the current number of components."""
@@ -268,13 +272,12 @@ class SliceKernel(Neal8Kernel):
             raise RuntimeError("the kernel has no state before setup(warmup_steps, y)")
         return self._chain
 
-    def sample(self, params: dict[str, Tensor]) -> dict[str, Tensor]:
-        """One slice-sampler sweep from the current state."""
-        if self._chain is None or self._y is None:
-            raise RuntimeError("call setup(warmup_steps, y) before sample()")
+    def _sweep(self, y: Tensor) -> DPMixtureState:
+        """One slice-sampler sweep from the current chain (kept with its stick labels); the
+        new state."""
         self._chain = slice_sweep(
-            self._y,
-            self._chain,
+            y,
+            self.chain,
             self.alpha,
             self.generator,
             self.inner_steps,
@@ -282,5 +285,4 @@ class SliceKernel(Neal8Kernel):
             update_prior=self.update_prior,
             exact_covariance=self.exact_covariance,
         )
-        self._num_sweeps += 1
-        return self._set_state(self._chain.state())
+        return self._chain.state()
