@@ -146,35 +146,32 @@ def test_a_checkpoint_naming_the_old_task_module_resumes(tmp_path):
     assert json.loads((run / "results.json").read_text())["trials"] == 40
 
 
-def test_a_checkpoint_from_before_pair_points_and_bounds_resumes(tmp_path):
-    """Checkpoints written before algo.optimizer.pair_points and .bounds existed lack them:
-    they resume with their defaults (the midpoint test, no box)."""
+def resumes_without(tmp_path, common: tuple[str, ...], lines_removed: tuple[str, ...]) -> None:
+    """Train 20 trials, remove ``lines_removed`` (each present once) from the checkpoint's
+    config, as a checkpoint from before those keys existed, and resume to 40 trials."""
     run = tmp_path / "run"
-    common = ("task=multimodal", "algo=dipole", "figure_every=0")
     train(*common, "trials=20", f"hydra.run.dir={run}")
     checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
     lines = checkpoint["config"].splitlines()
-    old = [x for x in lines if x.strip() not in ("pair_points: 1", "bounds: null")]
-    assert len(old) == len(lines) - 2
+    old = [x for x in lines if x.strip() not in lines_removed]
+    assert len(old) == len(lines) - len(lines_removed)
     checkpoint["config"] = "\n".join(old) + "\n"
     torch.save(checkpoint, run / "checkpoint.pt")
     train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
     assert json.loads((run / "results.json").read_text())["trials"] == 40
+
+
+def test_a_checkpoint_from_before_pair_points_and_bounds_resumes(tmp_path):
+    """Checkpoints written before algo.optimizer.pair_points and .bounds existed lack them:
+    they resume with their defaults (the midpoint test, no box)."""
+    common = ("task=multimodal", "algo=dipole", "figure_every=0")
+    resumes_without(tmp_path, common, ("pair_points: 1", "bounds: null"))
 
 
 def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
     """Checkpoints written before task.env.engine existed lack it: they resume with "auto"."""
-    run = tmp_path / "run"
     common = ("task=cartpole", "algo=power", "figure_every=0", "task.env.steps=50")
-    train(*common, "trials=20", f"hydra.run.dir={run}")
-    checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
-    lines = checkpoint["config"].splitlines()
-    old = [x for x in lines if x.strip() != "engine: auto"]
-    assert len(old) == len(lines) - 1
-    checkpoint["config"] = "\n".join(old) + "\n"
-    torch.save(checkpoint, run / "checkpoint.pt")
-    train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
-    assert json.loads((run / "results.json").read_text())["trials"] == 40
+    resumes_without(tmp_path, common, ("engine: auto",))
 
 
 def test_the_resume_command_names_the_command_that_ran(monkeypatch):
