@@ -17,7 +17,7 @@ from torch.distributions import (
 )
 from torch.distributions.kl import _kl_multivariatenormal_multivariatenormal
 
-from dipole_torch.sampling import draw
+from dipole_torch.sampling import broadcast_shape, draw
 from dipole_torch.validation import check_positive_definite
 
 
@@ -78,7 +78,7 @@ class GaussianMixture(TorchDistribution):
             dtype = torch.get_default_dtype()
         # Broadcast the three batch shapes, as torch.distributions does for its parameters.
         k, d = means.shape[-2:]
-        batch = torch.broadcast_shapes(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
+        batch = broadcast_shape(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
         weights = weights.to(dtype).expand(*batch, k)
         self.weights = weights / weights.sum(-1, keepdim=True)
         self.means = means.to(dtype).expand(*batch, k, d)
@@ -110,7 +110,7 @@ class GaussianMixture(TorchDistribution):
     @classmethod
     def infer_shapes(cls, weights, means, covariances) -> tuple[torch.Size, torch.Size]:
         """Batch and event shapes from the parameters' shapes (Pyro's shape inference)."""
-        batch = torch.broadcast_shapes(weights[:-1], means[:-2], covariances[:-3])
+        batch = broadcast_shape(weights[:-1], means[:-2], covariances[:-3])
         return torch.Size(batch), torch.Size(means[-1:])
 
     # ----------------------------------------------------------------- shapes and moments
@@ -251,7 +251,7 @@ class GaussianMixture(TorchDistribution):
             diff + mu_a
         )
         log_w = torch.log_softmax(self.weights.log() + log_lik, dim=-1)
-        batch = torch.broadcast_shapes(self.batch_shape, values.shape[:-1])
+        batch = broadcast_shape(self.batch_shape, values.shape[:-1])
         k, nb = self.num_components, b.numel()
         return self._derived(
             log_w.exp().expand(*batch, k),
@@ -336,8 +336,8 @@ def _check_parameters(weights: Tensor, means: Tensor, covariances: Tensor) -> No
             f"covariances must have shape [..., {k}, {d}, {d}], got {list(covariances.shape)}"
         )
     try:
-        torch.broadcast_shapes(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
-    except RuntimeError as error:
+        broadcast_shape(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
+    except ValueError as error:
         raise ValueError(
             "the batch shapes of weights, means and covariances do not broadcast: "
             f"{list(weights.shape[:-1])}, {list(means.shape[:-2])}, {list(covariances.shape[:-3])}"

@@ -8,6 +8,7 @@ import torch
 
 from dipole_torch.sampling import (
     bartlett_factor,
+    broadcast_shape,
     draw_categorical,
     draw_categorical_numpy,
     inverse_wishart,
@@ -124,3 +125,16 @@ def test_numpy_categorical_draw_matches_the_torch_one():
     inf = math.inf
     assert draw_categorical_numpy(np.array([-inf, 0.0, 0.0]), 0.0) == 1
     assert draw_categorical_numpy(np.array([0.0, 0.0, -inf, -inf]), 1.0 - 2.0**-53) == 1
+
+
+@pytest.mark.parametrize(
+    "shapes",
+    [((2,), (3, 1), (1, 1, 1)), ((), (4,)), ((5, 1, 3), (4, 1)), ((0,), (1,)), ((2, 3),)],
+)
+def test_broadcast_shape_equals_torchs(shapes):
+    assert broadcast_shape(*shapes) == tuple(torch.broadcast_shapes(*shapes))
+
+
+def test_broadcast_shape_names_shapes_that_do_not_broadcast():
+    with pytest.raises(ValueError, match=r"shapes \[2, 3\], \[4\] do not broadcast"):
+        broadcast_shape((2, 3), (4,))
