@@ -107,8 +107,9 @@ ADDED_KEYS = {
     "algo.optimizer.pair_points": 1,
     "algo.optimizer.bounds": None,
     # The one exception: runs from before the engines rolled out in torch, and resume with
-    # the default engine (on a CPU the Python episodes, whose returns differ from torch's
-    # only where rounding moves a trajectory across a threshold).
+    # the default engine (on a CPU the Python episodes of cart-pole and mountain car, whose
+    # returns differ from torch's only where rounding moves a trajectory across a
+    # threshold, and the viapoint task's float64 numpy rollouts, ~1e-7 from float32 torch's).
     "task.env.engine": "auto",
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose

@@ -1,5 +1,5 @@
 """Rollout throughput: the batched torch cart-pole against gymnasium's CartPole-v1, and the
-viapoint task on both of its kinematics paths.
+viapoint task's engines and kinematics paths.
 
 Environment steps per second, linear policy included, for B parallel episodes:
 
@@ -21,10 +21,11 @@ episode ends; ours freezes failed episodes (the work per step is the same either
 
 Viapoint (``--task viapoint``): seconds per
 :meth:`dipole_torch.tasks.viapoint.ViapointTask.evaluate` (DS-GMR path, 140-step tracking IK on the
-WAM, eq. 9) of B policies drawn around θ0 with the task's exploration std, for the default
-kinematics (pytorch-kinematics' forward kinematics and ``chain.jacobian`` on the URDF) and the WAM's
-analytic DH fast path (``kinematics=wam_dh``), on the same θ in the same run, best of ``--repeats``
-timings; the ratio is pytorch-kinematics' time over the DH path's.
+WAM, eq. 9) of B policies drawn around θ0 with the task's exploration std, with the torch engine on
+the default kinematics (pytorch-kinematics' forward kinematics and ``chain.jacobian`` on the URDF)
+and on the WAM's analytic DH fast path (``kinematics=wam_dh``), and with the numpy engine (the
+CPU default: float64 arrays, :mod:`dipole_torch.models.numpy_kinematics`), on the same θ in the
+same run, best of ``--repeats`` timings; the ratios are pytorch-kinematics' time over the others'.
 
 Run: ``python benchmarks/bench_rollout.py [--task cartpole|viapoint|all] [--threads N]
 [--device cuda]``.
@@ -97,12 +98,17 @@ def bench_gym_vector(env: gym.vector.VectorEnv, batch: int, steps: int) -> float
 
 
 def bench_viapoint(batches: tuple[int, ...], device: str, repeats: int) -> list[dict]:
-    """Seconds per ``evaluate`` of ``B`` policies for each kinematics path and batch size:
-    rows ``{"B", "pytorch_kinematics", "wam_dh", "ratio"}`` (ratio: pytorch-kinematics ÷ DH).
+    """Seconds per ``evaluate`` of ``B`` policies for each way of rolling out and batch size:
+    rows ``{"B", "pytorch_kinematics", "wam_dh", "numpy"}`` (the torch engine with either
+    kinematics path, and the numpy engine, CPU only: ``None`` on another device).
 
-    The two paths are timed alternately on the same θ (``repeats`` rounds, best of each), so
-    that load from other processes affects both alike."""
-    tasks = {name: ViapointTask(kinematics=name, device=device) for name in KINEMATICS}
+    The variants are timed alternately on the same θ (``repeats`` rounds, best of each), so
+    that load from other processes affects them alike."""
+    tasks = {
+        name: ViapointTask(kinematics=name, engine="torch", device=device) for name in KINEMATICS
+    }
+    if torch.device(device).type == "cpu":
+        tasks["numpy"] = ViapointTask(engine="numpy")
     reference = tasks[KINEMATICS[0]]
     generator = torch.Generator().manual_seed(0)
     std = float(reference.sigma_start[0, 0]) ** 0.5
@@ -120,7 +126,7 @@ def bench_viapoint(batches: tuple[int, ...], device: str, repeats: int) -> list[
                 if device.startswith("cuda"):
                     torch.cuda.synchronize()
                 best[name] = min(best[name], time.perf_counter() - start)
-        rows.append({"B": batch, **best, "ratio": best["pytorch_kinematics"] / best["wam_dh"]})
+        rows.append({"B": batch, "numpy": None, **best})
     return rows
 
 
@@ -128,15 +134,23 @@ def print_viapoint(rows: list[dict], device: str) -> None:
     steps = ViapointTask().dynamics.steps
     print(
         f"viapoint: seconds per evaluate of B policies ({steps} tracking steps, WAM 7-DOF), "
-        f"device {device}, {torch.get_num_threads()} torch threads"
+        f"device {device}, {torch.get_num_threads()} torch threads; torch engine with "
+        "pytorch-kinematics (pk) or the analytic DH path, numpy engine (CPU)"
     )
-    header = f"{'B':>6} | {'pytorch-kinematics':>18} | {'analytic DH':>11} | pk ÷ DH"
+    header = (
+        f"{'B':>6} | {'torch, pk':>10} | {'torch, DH':>10} | {'numpy':>8} | pk ÷ DH | pk ÷ numpy"
+    )
     print(header)
     print("-" * len(header))
     for row in rows:
+        pk, dh, numpy_time = row["pytorch_kinematics"], row["wam_dh"], row["numpy"]
+        numpy_cells = (
+            f"{numpy_time:>7.4f}s" if numpy_time else f"{'-':>8}",
+            f"{pk / numpy_time:9.1f}x" if numpy_time else f"{'-':>10}",
+        )
         print(
-            f"{row['B']:>6} | {row['pytorch_kinematics']:>17.4f}s | {row['wam_dh']:>10.4f}s | "
-            f"{row['ratio']:6.2f}x"
+            f"{row['B']:>6} | {pk:>9.4f}s | {dh:>9.4f}s | {numpy_cells[0]} | "
+            f"{pk / dh:6.2f}x | {numpy_cells[1]}"
         )
 
 

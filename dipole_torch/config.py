@@ -222,6 +222,11 @@ class ViapointEnv:
     kinematics: str = _field(
         "pytorch_kinematics", "pytorch_kinematics (any URDF) or wam_dh (the WAM's fast path)"
     )
+    engine: str = _field(
+        "auto",
+        "how rollouts run: numpy (float64 arrays on the CPU, no gradient), torch "
+        "(differentiable, any device), auto (numpy on the CPU unless theta requires a gradient)",
+    )
     start: list[float] | None = _field(
         [0.5, -0.35, 0.0], "m: start point; null: the end effector of initial_joints"
     )

@@ -44,7 +44,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
+from numpy.typing import NDArray
 from torch import Tensor
 
 from dipole_torch import GaussianMixture
@@ -112,6 +114,7 @@ class DSGMR:
         self._covariances = covariance.expand(components, 1 + dim, 1 + dim)
         self._weights = torch.full((components,), 1.0 / components, **factory)
         self._activations: Tensor | None = None  # h_i(t) [T+1, C], computed on first use
+        self._activations_numpy: NDArray[np.float64] | None = None  # the same, float64
 
     @property
     def parameter_dim(self) -> int:
@@ -163,12 +166,17 @@ class DSGMR:
         """
         centres = self._all_centres(theta, goal)
         if self._activations is None or self._activations.dtype != theta.dtype:
-            probe_goal = None if self.goal_time is None else theta.new_zeros(self.dim)
-            time_marginal = self.gmm(torch.zeros_like(theta[:1]), probe_goal).marginal([0])
-            self._activations = time_marginal.responsibilities(
-                self.times.to(theta.dtype).unsqueeze(-1).unsqueeze(-1)
-            )[:, 0]  # [T+1, C]
+            self._activations = self._time_activations(theta.dtype)
         return self._activations @ centres
+
+    def _time_activations(self, dtype: torch.dtype) -> Tensor:
+        """``[T+1, C]`` responsibilities h_i(t) of the time marginal on the time grid."""
+        probe = torch.zeros(1, self.parameter_dim, device=self.device, dtype=dtype)
+        probe_goal = None if self.goal_time is None else probe.new_zeros(self.dim)
+        time_marginal = self.gmm(probe, probe_goal).marginal([0])
+        return time_marginal.responsibilities(self.times.to(dtype).unsqueeze(-1).unsqueeze(-1))[
+            :, 0
+        ]
 
     def rollout(self, theta: Tensor, start: Tensor, goal: Tensor | None = None) -> Tensor:
         """Tip positions ``[B, T+1, dim]`` of the spring-damper, from rest at ``start: [dim]``
@@ -185,3 +193,45 @@ class DSGMR:
             position = position + self.dt * velocity
             path.append(position)
         return torch.stack(path, dim=1)
+
+    def rollout_numpy(
+        self,
+        theta: NDArray[np.float64],
+        start: NDArray[np.float64],
+        goal: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        """:meth:`rollout` in float64 numpy (the viapoint task's CPU engine): tip positions
+        ``[B, T+1, dim]`` of policies ``theta: [B, K·dim]``, from rest at ``start: [dim]``."""
+        if self._activations_numpy is None:
+            # h_i(t) of the time marginal, as _time_activations computes them, written out:
+            # log h_i(t) = log N(t; μ_i^t, σ_t²) − log Σ_j N(t; μ_j^t, σ_t²), the weights and
+            # σ_t being equal. (No torch distribution: the first one a process builds imports
+            # sympy, ~0.9 s.)
+            # Same definitions as __init__'s, in float64 (equal weights and σ_t).
+            components = self.num_attractors + (self.goal_time is not None)
+            spacing = (self.duration if self.goal_time is None else self.goal_time) / (
+                self.num_attractors
+            )
+            times = np.arange(self.steps + 1, dtype=np.float64)[:, None] * self.dt
+            centres = np.arange(components, dtype=np.float64) * spacing
+            log_density = -0.5 * (times - centres) ** 2 / self.time_std**2  # [T+1, C]
+            log_density -= log_density.max(axis=1, keepdims=True)
+            activations = np.exp(log_density)
+            self._activations_numpy = activations / activations.sum(axis=1, keepdims=True)
+        centres = theta.reshape(theta.shape[0], self.num_attractors, self.dim)
+        if self.goal_time is not None:
+            goal = np.broadcast_to(goal, (theta.shape[0], 1, self.dim))
+            centres = np.concatenate([centres, goal], axis=1)
+        attractor = self._activations_numpy @ centres  # [B, T+1, dim]
+        path = np.empty_like(attractor)
+        position = np.broadcast_to(start, (theta.shape[0], self.dim))
+        velocity = np.zeros_like(position)
+        path[:, 0] = position
+        for step in range(self.steps):
+            acceleration = (
+                self.stiffness * (attractor[:, step] - position) - self.damping * velocity
+            )
+            velocity = velocity + self.dt * acceleration
+            position = position + self.dt * velocity
+            path[:, step + 1] = position
+        return path

@@ -17,12 +17,17 @@ freedom take the minimum-norm joint step.
 and ``clamp_to_limits``: :class:`dipole_torch.models.kinematics.ArmKinematics`
 (pytorch-kinematics, any URDF: ``chain.jacobian``) or
 :class:`dipole_torch.models.wam.WamKinematics` (the WAM's analytic DH path).
+:func:`track_path_numpy` is the same tracking in float64 numpy on a
+:class:`dipole_torch.models.numpy_kinematics.NumpyChain` (the viapoint task's CPU engine).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from dipole_torch.models.kinematics import ArmKinematics
+from dipole_torch.models.numpy_kinematics import NumpyChain
+from numpy.typing import NDArray
 from torch import Tensor
 
 
@@ -88,3 +93,33 @@ def track_path(
     joints.append(q)
     positions.append(kinematics.forward_kinematics(q))
     return torch.stack(joints, dim=1), torch.stack(positions, dim=1)
+
+
+def track_path_numpy(
+    chain: NumpyChain,
+    q_start: NDArray[np.float64],
+    desired: NDArray[np.float64],
+    damping: float,
+    lower: NDArray[np.float64],
+    upper: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`track_path` in float64 numpy (the viapoint task's CPU engine): the same DLS
+    steps and clipping to ``[lower, upper]: [n]``, on a :class:`NumpyChain`.
+
+    Returns the end-effector path ``[B, T+1, 3]`` the arm makes for ``desired: [B, T+1, 3]``
+    from ``q_start: [n]``.
+    """
+    batch, horizon = desired.shape[0], desired.shape[1]
+    q = np.broadcast_to(q_start, (batch, chain.dof))
+    positions = np.empty_like(desired)
+    damping_term = damping**2 * np.eye(3)
+    for step in range(horizon - 1):
+        position, jacobian = chain.position_and_jacobian(q)
+        positions[:, step] = position
+        jacobian_t = jacobian.transpose(0, 2, 1)
+        gram = jacobian @ jacobian_t + damping_term
+        error = desired[:, step + 1] - position
+        step_q = (jacobian_t @ np.linalg.solve(gram, error[:, :, None]))[:, :, 0]
+        q = np.minimum(np.maximum(q + step_q, lower), upper)
+    positions[:, -1] = chain.forward_kinematics(q)
+    return positions

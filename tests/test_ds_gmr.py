@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from dipole_torch.models.ds_gmr import DSGMR
@@ -102,3 +103,20 @@ def test_runs_on_cuda():
     ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0, device="cuda")
     path = ds.rollout(torch.zeros(5, 9, device="cuda"), torch.zeros(3, device="cuda"))
     assert path.device.type == "cuda" and path.shape == (5, 11, 3)
+
+
+@pytest.mark.parametrize("goal_time", [None, 2.6])
+def test_numpy_rollout_equals_the_torch_rollout(goal_time):
+    """The numpy engine's DS-GMR (float64 arrays, written-out activations) against the
+    torch rollout in float64: the same path to rounding."""
+    ds = DSGMR(3, duration=2.8, dt=0.02, stiffness=100.0, time_std=0.28, goal_time=goal_time)
+    ds64 = DSGMR(
+        3, duration=2.8, dt=0.02, stiffness=100.0, time_std=0.28, goal_time=goal_time, dtype=F64
+    )
+    theta = torch.randn(5, 9, dtype=F64, generator=torch.Generator().manual_seed(5))
+    start = torch.tensor([0.5, -0.35, 0.0], dtype=F64)
+    goal = None if goal_time is None else torch.tensor([0.5, 0.35, 0.0], dtype=F64)
+    expected = ds64.rollout(theta, start, goal).numpy()
+    path = ds.rollout_numpy(theta.numpy(), start.numpy(), None if goal is None else goal.numpy())
+    assert path.shape == (5, 141, 3) and path.dtype == np.float64
+    np.testing.assert_allclose(path, expected, atol=1e-12, rtol=0)

@@ -220,12 +220,14 @@ def test_bad_inputs_raise(task):
         ViapointTask(goal_time=3.0)
 
 
-def test_analytic_fast_path_gives_the_default_paths(task, dh_task):
-    """kinematics="wam_dh" against the default pytorch-kinematics path: same start posture (to
-    the start IK's tolerance), same arm paths and rewards for policies up to 0.2 m from θ0
-    (measured: within 1.2e-10 m), same positions and Jacobians.
-    Far outside the workspace the DLS steps at the reach boundary amplify rounding
+def test_analytic_fast_path_gives_the_default_paths():
+    """kinematics="wam_dh" against the default pytorch-kinematics path (the torch engine's
+    kinematics): same start posture (to the start IK's tolerance), same arm paths and rewards
+    for policies up to 0.2 m from θ0 (measured: within 1.2e-10 m), same positions and
+    Jacobians. Far outside the workspace the DLS steps at the reach boundary amplify rounding
     differences, so the two paths may part there (both stay valid arm paths)."""
+    task = ViapointTask(dtype=F64, engine="torch")
+    dh_task = ViapointTask(dtype=F64, kinematics="wam_dh", engine="torch")
     assert type(task.kinematics) is ArmKinematics and type(dh_task.kinematics) is WamKinematics
     torch.testing.assert_close(dh_task.q_start, task.q_start, atol=1e-6, rtol=0)
     generator = torch.Generator().manual_seed(2)
@@ -308,3 +310,60 @@ def test_runs_on_cuda():
     assert task.route(theta).shape == (30, 3)
     cpu = ViapointTask().evaluate(theta.cpu())
     torch.testing.assert_close(rewards.cpu(), cpu, atol=1e-3, rtol=0)
+
+
+def test_numpy_engine_follows_the_torch_engine(task):
+    """The default engine on a CPU (numpy, float64) against the torch rollout: the same
+    paths to rounding, in float64 (measured: 3e-10 m) and in the default float32 (the torch
+    rollout's rounding, for policies 0.1 m from θ0: measured 2.4e-7 m, rewards 1.8e-7)."""
+    assert task.engine == "auto"
+    torch_task = ViapointTask(dtype=F64, engine="torch")
+    generator = torch.Generator().manual_seed(6)
+    theta = torch.cat(
+        [
+            task.theta0 + 0.1 * torch.randn(16, 9, generator=generator, dtype=F64),
+            task.theta0 + 0.3 * torch.randn(16, 9, generator=generator, dtype=F64),
+        ]
+    )
+    torch.testing.assert_close(
+        task.trajectory(theta), torch_task.trajectory(theta), atol=1e-8, rtol=0
+    )
+    torch.testing.assert_close(task.evaluate(theta), torch_task.evaluate(theta), atol=1e-8, rtol=0)
+    # In float32 only near θ0: far outside the workspace the DLS steps at the reach boundary
+    # amplify float32 rounding (as between the kinematics paths), and paths may part.
+    task32, torch_task32 = ViapointTask(engine="numpy"), ViapointTask(engine="torch")
+    theta32 = theta[:16].float()
+    path = task32.trajectory(theta32)
+    assert path.dtype == torch.float32
+    torch.testing.assert_close(path, torch_task32.trajectory(theta32), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        task32.evaluate(theta32), torch_task32.evaluate(theta32), atol=1e-5, rtol=0
+    )
+
+
+def test_engine_choice_and_its_errors(task):
+    theta = task.theta0[None].clone()
+    assert task._runs_numpy(theta)  # auto on the CPU
+    assert not task._runs_numpy(theta.requires_grad_(True))  # a gradient needs torch
+    with torch.no_grad():
+        assert task._runs_numpy(theta)
+    numpy_task = ViapointTask(dtype=F64, engine="numpy")
+    with pytest.raises(ValueError, match="engine='numpy' is not differentiable"):
+        numpy_task.evaluate(theta)
+    with pytest.raises(ValueError, match="engine must be one of 'auto', 'numpy', 'torch'"):
+        ViapointTask(engine="jax")
+    with pytest.raises(ValueError, match="engine='numpy' runs on the CPU"):
+        ViapointTask(engine="numpy", device="cuda")
+
+
+@pytest.mark.parametrize("engine", ["numpy", "torch"])
+def test_a_policys_path_does_not_depend_on_its_batch(engine):
+    """Bit for bit: the lockstep benchmarks stack the batches of many runs into one rollout.
+    (numpy's matmul picks its kernel by the operands' strides: a Jacobian returned as a view
+    whose strides depend on B gave 4e-16 differences in float64.)"""
+    task = ViapointTask(dtype=F64, engine=engine)
+    generator = torch.Generator().manual_seed(7)
+    theta = task.theta0 + 0.1 * torch.randn(12, 9, generator=generator, dtype=F64)
+    whole = task.trajectory(theta)
+    assert torch.equal(whole, torch.cat([task.trajectory(theta[:5]), task.trajectory(theta[5:])]))
+    assert torch.equal(whole, torch.cat([task.trajectory(row[None]) for row in theta]))
