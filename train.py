@@ -490,6 +490,7 @@ def main(cfg: DictConfig) -> dict:
         )
 
     bar = tqdm(total=cfg.trials, initial=optimizer.trials, unit="trial", disable=not cfg.progress)
+    figure_trials = None  # trials at the last policy figure logged
     last_batch_cut = False
     with StopRequest() as stop:
         while optimizer.trials < cfg.trials and stop.signum is None:
@@ -525,6 +526,7 @@ def main(cfg: DictConfig) -> dict:
                 figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
                 if figure is not None:
                     writer.add_figure("policies/figure", figure, optimizer.trials)
+                    figure_trials = optimizer.trials
             if len(history) % cfg.checkpoint_every == 0 and not last_batch_cut:
                 save_checkpoint()
         bar.close()
@@ -540,9 +542,10 @@ def main(cfg: DictConfig) -> dict:
             )
             raise SystemExit(128 + stop.signum)
 
-    figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
-    if figure is not None:
-        writer.add_figure("policies/figure", figure, optimizer.trials)
+    if figure_trials != optimizer.trials:  # the final policies, unless just drawn
+        figure = task.plot_policies(optimizer.policy_means.to(task.device, task.dtype))
+        if figure is not None:
+            writer.add_figure("policies/figure", figure, optimizer.trials)
     policies = policy_summary(task, optimizer)
     artefacts = {"policies": optimizer.policies.state_dict()}
     if isinstance(optimizer, Dipole):

@@ -106,6 +106,16 @@ def test_train_log_holds_the_log_lines_and_the_summary(finished_run):
     assert log.count("  policy ") == len(results["policies"])
 
 
+def test_each_policy_figure_is_logged_once(tmp_path):
+    """A figure every iteration, and the final one not drawn again at the same trial count."""
+    train("task=viapoint", "trials=40", "task.n0=30", "figure_every=1", f"hydra.run.dir={tmp_path}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    events = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"images": 0})
+    events.Reload()
+    steps = [event.step for event in events.Images("policies/figure")]
+    assert steps == results["history"]["trials"] and steps[-1] == results["trials"] == 40
+
+
 def test_the_summary_is_on_stdout(tmp_path):
     out = train("algo=power", "trials=20", f"hydra.run.dir={tmp_path}").stdout
     assert "power on multimodal: best return" in out and "in 20 trials (budget 20)" in out
