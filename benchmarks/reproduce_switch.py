@@ -24,9 +24,9 @@ count): ``executed`` = the return of the parameters the run would execute, ``opt
 policy mean; at 0, the policy mean that was best before the block); ``best`` and ``average``
 = max and mean of ``opt.last_rewards`` as in ``reproduce_viapoint.py``. All runs advance in
 lockstep (``lockstep.run_in_lockstep``), one batched rollout per iteration, each run's rows
-scored on its own layout. Rollouts use the WAM's analytic kinematics (``wam_dh``: the
-default's paths to float rounding, 2x faster). Writes ``docs/figures/figure_switch.png``
-and ``docs/figures/switch.json``::
+scored on its own layout. Rollouts use the task's default engine (on a CPU the float64
+numpy rollout of the URDF's chain: the torch rollout's paths to float rounding, 3-8x
+faster). Writes ``docs/figures/figure_switch.png`` and ``docs/figures/switch.json``::
 
     python benchmarks/reproduce_switch.py --workers 1   # 10 runs
     python benchmarks/reproduce_switch.py --runs 2      # quick look
@@ -213,9 +213,7 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
     seeds, after, radius, threshold = job
     torch.set_num_threads(1)
     start = time.perf_counter()
-    # The WAM's analytic kinematics: the default pytorch-kinematics paths to float rounding
-    # (tests/test_viapoint.py), 2x faster.
-    task, trials, n0 = load_task("viapoint", kinematics="wam_dh")
+    task, trials, n0 = load_task("viapoint")  # the default engine: numpy on a CPU
     runs = [
         {"algo": algo, "seed": s, "opt": RecordBest(make_optimizer(algo, task, n0, s))}
         for algo in ("DIPOLE", "PoWER")
