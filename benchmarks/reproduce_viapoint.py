@@ -37,7 +37,7 @@ dozens, its 140 inverse-kinematics steps being bound by per-operation overhead).
 ``docs/figures/figure2_viapoint.png``, ``docs/figures/figure3_routes.png`` and
 ``docs/figures/viapoint.json``::
 
-    python benchmarks/reproduce_viapoint.py            # 10 runs per algorithm, minutes on 2 cores
+    python benchmarks/reproduce_viapoint.py            # 10 runs per algorithm, 29 s on 2 cores
     python benchmarks/reproduce_viapoint.py --workers 15   # 43 s, idle 16-core host (last release)
     python benchmarks/reproduce_viapoint.py --runs 2   # quick look
 """
