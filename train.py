@@ -106,7 +106,10 @@ ADDED_KEYS = {
     "task.block": None,
     "algo.optimizer.pair_points": 1,
     "algo.optimizer.bounds": None,
-    # The one exception: runs from before the engines rolled out in torch, and resume with
+    # Runs from before it drew fresh auxiliary components; "auto" does too below D = 31 (and
+    # above, re-uses them: another exact sampler of the same clustering).
+    "algo.optimizer.auxiliary": "auto",
+    # Runs from before the engines rolled out in torch, and resume with
     # the default engine (on a CPU the Python episodes of cart-pole and mountain car, whose
     # returns differ from torch's only where rounding moves a trajectory across a
     # threshold, and the viapoint task's float64 numpy rollouts, ~1e-7 from float32 torch's).

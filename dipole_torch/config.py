@@ -346,6 +346,11 @@ class DipoleOptimizer:
     pair_points: int = _field(
         1, "probes between two neighbouring policies before the worse is dropped (1: midpoint)"
     )
+    auxiliary: str = _field(
+        "auto",
+        "fresh: Algorithm 8's m draws per point; reuse: Favaro & Teh's re-used draws (CPU); "
+        "auto: reuse on the CPU once D + 1 >= 32",
+    )
     bounds: Any = _field(None, _BOUNDS)
 
 

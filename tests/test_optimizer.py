@@ -6,6 +6,7 @@ import pytest
 import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
 
+import dipole_torch.optimizer as optimizer_module
 from dipole_torch import Dipole, GaussianMixture, Power
 
 F64 = torch.float64
@@ -110,6 +111,7 @@ def test_tell_without_ask_and_positive_rewards_without_range():
         ({"n0": -1}, "n0"),
         ({"reward_range": (1.0, 0.0)}, "high > low"),
         ({"cluster_every": 0}, "cluster_every"),
+        ({"auxiliary": "fast"}, "auxiliary must be 'auto', 'fresh' or 'reuse'"),
     ],
 )
 def test_bad_constructor_arguments(kwargs, message):
@@ -203,6 +205,49 @@ def test_a_policy_converges_on_a_smooth_bump_in_10d():
     learn(opt, bump, 2000)
     assert float(bump(opt.policy_means).max()) >= 7.0 * (1 - 1e-3)
     assert float(opt.policy_covariances.diagonal(dim1=-2, dim2=-1).max()) < 1e-2 * 4
+
+
+def test_auxiliary_draws_auto_reuse_them_in_high_dimension_only(monkeypatch):
+    """auxiliary="auto" re-uses the auxiliary draws once p = D + 1 >= 32 (where they are
+    most of a sweep's cost), never in the paper's variant, and the clusterings get it."""
+
+    def build(d, **kwargs):
+        return Dipole(torch.zeros(d, dtype=F64), torch.eye(d, dtype=F64), **kwargs)
+
+    assert not build(30).reuse_auxiliary and build(31).reuse_auxiliary
+    assert build(2, auxiliary="reuse").reuse_auxiliary
+    assert not build(40, auxiliary="fresh").reuse_auxiliary
+    assert not Dipole.paper(torch.zeros(40, dtype=F64), torch.eye(40, dtype=F64)).reuse_auxiliary
+    asked = []
+    original = optimizer_module.fit_dp_mixture
+
+    def recording(*args, **kwargs):
+        asked.append(kwargs["reuse_auxiliary"])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(optimizer_module, "fit_dp_mixture", recording)
+    for d, expected in ((2, False), (31, True)):
+        asked.clear()
+        learn(build(d, generator=torch.Generator().manual_seed(0)), two_optima, 40)
+        assert asked and set(asked) == {expected}
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_reused_auxiliary_draws_find_and_converge_on_both_optima(seed):
+    """Favaro & Teh's sampler in the whole optimizer: a long run on two optima in 2-D never
+    raises and ends with a converged policy on each, as Algorithm 8's does. (The sampler's
+    exactness is tested against the enumerated posterior in ``tests/test_dp_exact.py``.)"""
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+        auxiliary="reuse",
+        generator=torch.Generator().manual_seed(seed),
+    )
+    learn(opt, two_optima, 1500)
+    returns = two_optima(opt.policy_means)
+    for optimum in (1.0, -1.0):
+        near = ((opt.policy_means - optimum).abs().amax(-1) < 1e-2) & (returns > -1e-2)
+        assert bool(near.any()), f"no converged policy at {optimum}: {opt.policy_means}"
 
 
 def test_long_successful_run_retires_converged_policies_and_keeps_going():

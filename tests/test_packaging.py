@@ -161,11 +161,11 @@ def resumes_without(tmp_path, common: tuple[str, ...], lines_removed: tuple[str,
     assert json.loads((run / "results.json").read_text())["trials"] == 40
 
 
-def test_a_checkpoint_from_before_pair_points_and_bounds_resumes(tmp_path):
-    """Checkpoints written before algo.optimizer.pair_points and .bounds existed lack them:
-    they resume with their defaults (the midpoint test, no box)."""
+def test_a_checkpoint_from_before_pair_points_bounds_and_auxiliary_resumes(tmp_path):
+    """Checkpoints written before algo.optimizer.pair_points, .bounds and .auxiliary existed
+    lack them: they resume with their defaults (the midpoint test, no box, auto draws)."""
     common = ("task=multimodal", "algo=dipole", "figure_every=0")
-    resumes_without(tmp_path, common, ("pair_points: 1", "bounds: null"))
+    resumes_without(tmp_path, common, ("pair_points: 1", "bounds: null", "auxiliary: auto"))
 
 
 def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
