@@ -756,9 +756,9 @@ class Dipole(PolicySearch):
 
     # (1+1)-CMA-ES success rule (Igel, Suttorp & Hansen 2006).
     TARGET_SUCCESS = 2.0 / 11.0
+    SUCCESS_SMOOTHING = 1.0 / 12.0
     # auxiliary="auto" re-uses auxiliary draws from this dimension p = D + 1 of [θ, r] on.
     REUSE_AUXILIARY_DIM = 32
-    SUCCESS_SMOOTHING = 1.0 / 12.0
 
     def __init__(
         self,

@@ -102,6 +102,7 @@ class DSGMR:
             raise ValueError(f"goal_time must lie in (0, duration={duration}], got {goal_time}")
         self.goal_time = None if goal_time is None else float(goal_time)
         spacing = (duration if goal_time is None else goal_time) / num_attractors
+        self._spacing = spacing  # seconds between time centres
         self.time_std = float(time_std) if time_std is not None else 0.5 * spacing
         factory = {"device": self.device, "dtype": dtype}
         self.times = torch.arange(steps + 1, **factory) * self.dt  # [T+1] seconds
@@ -202,18 +203,20 @@ class DSGMR:
     ) -> NDArray[np.float64]:
         """:meth:`rollout` in float64 numpy (the viapoint task's CPU engine): tip positions
         ``[B, T+1, dim]`` of policies ``theta: [B, K·dim]``, from rest at ``start: [dim]``."""
-        if self._activations_numpy is None:
-            # h_i(t) of the time marginal, as _time_activations computes them, written out:
-            # log h_i(t) = log N(t; μ_i^t, σ_t²) − log Σ_j N(t; μ_j^t, σ_t²), the weights and
-            # σ_t being equal. (No torch distribution: the first one a process builds imports
-            # sympy, ~0.9 s.)
-            # Same definitions as __init__'s, in float64 (equal weights and σ_t).
-            components = self.num_attractors + (self.goal_time is not None)
-            spacing = (self.duration if self.goal_time is None else self.goal_time) / (
-                self.num_attractors
+        if theta.ndim != 2 or theta.shape[-1] != self.parameter_dim:
+            raise ValueError(
+                f"theta must have shape [B, {self.parameter_dim}], got {list(theta.shape)}"
             )
+        if (goal is None) != (self.goal_time is None):
+            raise ValueError("goal must be given exactly when this DSGMR has a goal_time")
+        if self._activations_numpy is None:
+            # h_i(t) of the time marginal, as _time_activations computes them, written out in
+            # float64 from __init__'s definitions: log h_i(t) = log N(t; μ_i^t, σ_t²) −
+            # log Σ_j N(t; μ_j^t, σ_t²), the weights and σ_t being equal. (No torch
+            # distribution: the first one a process builds imports sympy, ~0.9 s.)
+            components = self.num_attractors + (self.goal_time is not None)
             times = np.arange(self.steps + 1, dtype=np.float64)[:, None] * self.dt
-            centres = np.arange(components, dtype=np.float64) * spacing
+            centres = np.arange(components, dtype=np.float64) * self._spacing
             log_density = -0.5 * (times - centres) ** 2 / self.time_std**2  # [T+1, C]
             log_density -= log_density.max(axis=1, keepdims=True)
             activations = np.exp(log_density)

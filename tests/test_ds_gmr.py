@@ -120,3 +120,11 @@ def test_numpy_rollout_equals_the_torch_rollout(goal_time):
     path = ds.rollout_numpy(theta.numpy(), start.numpy(), None if goal is None else goal.numpy())
     assert path.shape == (5, 141, 3) and path.dtype == np.float64
     np.testing.assert_allclose(path, expected, atol=1e-12, rtol=0)
+
+
+def test_numpy_rollout_rejects_bad_shapes_and_goals():
+    ds = DSGMR(3, duration=2.8, dt=0.02, stiffness=100.0, goal_time=2.4)
+    with pytest.raises(ValueError, match=r"theta must have shape \[B, 9\]"):
+        ds.rollout_numpy(np.zeros((2, 6)), np.zeros(3), np.zeros(3))
+    with pytest.raises(ValueError, match="goal must be given exactly"):
+        ds.rollout_numpy(np.zeros((2, 9)), np.zeros(3))
