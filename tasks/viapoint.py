@@ -458,7 +458,9 @@ class ViapointTask(EpisodicTask):
     # ------------------------------------------------------------------ rollouts
     def desired_trajectory(self, theta: Tensor) -> Tensor:
         """The DS-GMR task-space path ``[B, T+1, 3]`` the arm is asked to follow."""
-        theta = self.check_theta(theta)
+        return self._desired(self.check_theta(theta))
+
+    def _desired(self, theta: Tensor) -> Tensor:
         goal = self.target if self.end_at_target else None
         return self.dynamics.rollout(theta, self.start, goal)
 
@@ -467,7 +469,7 @@ class ViapointTask(EpisodicTask):
         theta = self.check_theta(theta)
         if self._runs_numpy(theta):
             return self._trajectory_numpy(theta)
-        desired = self.desired_trajectory(theta)
+        desired = self._desired(theta)  # (theta checked above)
         _, positions = track_path(self.kinematics, self.q_start, desired, self.ik_damping)
         return positions
 
