@@ -79,6 +79,7 @@ class NumpyChain:
             frame = frame.children[0]
         self.dof = len(axes)
         self.revolute = np.array(revolute, dtype=bool)
+        self._all_revolute = bool(self.revolute.all())  # (asked at every call)
         self._rotation = np.array(rotations).reshape(self.dof, 3, 3)  # S_i, fixed part of frame i
         self._translation = np.array(translations).reshape(self.dof, 3)
         axes = np.array(axes).reshape(self.dof, 3)
@@ -121,7 +122,7 @@ class NumpyChain:
         axes = axis_and_offset[..., 0]  # z_i, [n, B, 3]
         origins = np.cumsum(axis_and_offset[..., 1], axis=0)  # p_i before joint i's motion
         end = origins[-1] + rotations[n] @ self._tool_translation
-        if not self.revolute.all():  # a prismatic joint moves everything after it by q z
+        if not self._all_revolute:  # a prismatic joint moves everything after it by q z
             slide = np.where(self.revolute[:, None, None], 0.0, axes * q.T[:, :, None])
             moved = np.cumsum(slide, axis=0)
             origins = origins + moved - slide
@@ -135,7 +136,7 @@ class NumpyChain:
             ],
             axis=1,
         )  # [n, 3, B]
-        if not self.revolute.all():
+        if not self._all_revolute:
             linear = np.where(self.revolute[:, None, None], linear, axes.transpose(0, 2, 1))
         # A contiguous [B, 3, n]: numpy's matmul picks its kernel (BLAS or its own loop, whose
         # roundings differ) by the operands' strides, and a view's strides depend on B; each
