@@ -175,9 +175,8 @@ class DSGMR:
         probe = torch.zeros(1, self.parameter_dim, device=self.device, dtype=dtype)
         probe_goal = None if self.goal_time is None else probe.new_zeros(self.dim)
         time_marginal = self.gmm(probe, probe_goal).marginal([0])
-        return time_marginal.responsibilities(self.times.to(dtype).unsqueeze(-1).unsqueeze(-1))[
-            :, 0
-        ]
+        times = self.times.to(dtype)[:, None, None]  # [T+1, 1, 1]: one batch row per time
+        return time_marginal.responsibilities(times)[:, 0]
 
     def rollout(self, theta: Tensor, start: Tensor, goal: Tensor | None = None) -> Tensor:
         """Tip positions ``[B, T+1, dim]`` of the spring-damper, from rest at ``start: [dim]``
