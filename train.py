@@ -109,6 +109,8 @@ ADDED_KEYS = {
     # Runs from before it drew fresh auxiliary components; "auto" does too below D = 31 (and
     # above, re-uses them: another exact sampler of the same clustering).
     "algo.optimizer.auxiliary": "auto",
+    # Runs from before it sampled every active policy in every iteration.
+    "algo.optimizer.max_sampled": None,
     # Runs from before the engines rolled out in torch, and resume with
     # the default engine (on a CPU the Python episodes of cart-pole and mountain car, whose
     # returns differ from torch's only where rounding moves a trajectory across a

@@ -338,6 +338,9 @@ class DipoleOptimizer:
     )
     explore: float = _field(0.05, "scouts from N(theta0, sigma_start) per policy sample, [0, 1]")
     max_policies: int | None = _field(8, "active policies at most (null: no limit)")
+    max_sampled: int | None = _field(
+        4, "policies sampled per iteration at most, the best ones; the others wait (null: all)"
+    )
     retire_std: float = _field(
         0.001, "retire a policy once its exploration std is below this x sigma_start's"
     )

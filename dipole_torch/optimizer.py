@@ -275,13 +275,17 @@ class PolicySearch:
         return self._pending_owner
 
     def _propose(self) -> tuple[Tensor, Tensor]:
-        """One sample per active policy: ``([K_active, D], owners [K_active])``."""
-        index = self.active.nonzero().squeeze(-1)
+        """One sample per sampled policy: ``([K_sampled, D], owners [K_sampled])``."""
+        index = self._sampled_policies()
         if index.numel() == self.num_policies:
             means, covs = self.policy_means, self.policy_covariances
         else:
             means, covs = self.policy_means[index], self.policy_covariances[index]
         return draw_gaussian(means, covs, (), self.generator), index
+
+    def _sampled_policies(self) -> Tensor:
+        """``[K_sampled]`` the policies that draw a sample at the next ask: the active ones."""
+        return self.active.nonzero().squeeze(-1)
 
     def tell(self, theta: Tensor, rewards: Tensor) -> None:
         """Report the returns of the parameters from the last :meth:`ask`.
@@ -656,6 +660,9 @@ class Dipole(PolicySearch):
     ``hill_valley``               probe new and neighbouring  no
                                   policies
     ``max_policies``              active policies at most     no limit
+    ``max_sampled``               policies sampled in an      no limit
+                                  iteration at most (the best
+                                  4; the others wait)
     ``retire_std``                stop sampling a converged   0 (never)
                                   policy
     ``merge_radius``              drop duplicate policies     0 (never)
@@ -695,6 +702,13 @@ class Dipole(PolicySearch):
       dropped (one whose exploration covers two or more is left to the hill-valley probes).
     * A candidate starts exploring at most half the way to the policy it was told apart
       from; one that replaces a retired policy starts from its better sample.
+    * With more than ``max_sampled`` active policies, only the ``max_sampled`` with the best
+      kept returns draw a sample in an iteration; the others wait (still among
+      :attr:`policies`, their exploration unchanged, their means eq. 7's average of the
+      samples they keep) until a policy ahead of them retires or is dropped. Spread over
+      every policy at once, a budget of a few hundred trials converged none of them on
+      most 5-D landscapes with 8 optima; in turn, the first ones converge and the later
+      ones still get their turn (see :meth:`_sampled_policies`).
 
     Args:
         theta0: ``[D]`` initial policy.
@@ -717,6 +731,8 @@ class Dipole(PolicySearch):
         exploration: ``"success"`` or ``"clustering"``.
         explore: scouts per policy sample, in [0, 1] (0: none).
         max_policies: most active policies, or ``None`` for no limit.
+        max_sampled: most policies sampled in one iteration (those with the best kept
+            returns), or ``None`` for every active policy (the paper's).
         retire_std: relative exploration std below which a policy is retired (0: never).
         merge_radius: duplicate distance in exploration stds (0: never merge).
         hill_valley: vet candidates and neighbouring policies with midpoint probes.
@@ -780,6 +796,7 @@ class Dipole(PolicySearch):
         exploration: str = "success",
         explore: float = 0.05,
         max_policies: int | None = 8,
+        max_sampled: int | None = 4,
         retire_std: float = 1e-3,
         merge_radius: float = 1.0,
         hill_valley: bool = True,
@@ -794,6 +811,7 @@ class Dipole(PolicySearch):
         check_count(sweeps, "sweeps")
         check_count(initial_sweeps, "initial_sweeps")
         check_count(max_policies, "max_policies", optional=True)
+        check_count(max_sampled, "max_sampled", optional=True)
         check_count(pair_points, "pair_points")
         check_real(prior_df, "prior_df", optional=True)
         super().__init__(
@@ -851,6 +869,7 @@ class Dipole(PolicySearch):
         self.exploration = exploration
         self.explore = float(explore)
         self.max_policies = None if max_policies is None else int(max_policies)
+        self.max_sampled = None if max_sampled is None else int(max_sampled)
         self.retire_std = float(retire_std)
         self.merge_radius = float(merge_radius)
         self.hill_valley = bool(hill_valley)
@@ -886,6 +905,7 @@ class Dipole(PolicySearch):
             exploration="clustering",
             explore=0,
             max_policies=None,
+            max_sampled=None,
             retire_std=0.0,
             merge_radius=0.0,
             hill_valley=False,
@@ -902,7 +922,7 @@ class Dipole(PolicySearch):
         theta, owner = (
             super()._propose() if bool(self.active.any()) else (self.thetas[:0], self.owner[:0])
         )
-        scouts = self._scouts_next()
+        scouts = self._scouts_next(theta.shape[0])
         if scouts:
             extra = draw_gaussian(self.theta0, self.sigma_start, (scouts,), self.generator)
             theta = torch.cat((theta, extra))
@@ -913,14 +933,28 @@ class Dipole(PolicySearch):
             owner = torch.cat((owner, torch.full_like(probes[:, 0], PROBE, dtype=torch.long)))
         return theta, owner
 
-    def _scouts_next(self) -> int:
-        """Scouts in the next ask: ``explore`` per policy sample on average; a fresh ``n0``
-        when every policy has been retired (a restart)."""
-        active = int(self.active.sum())
-        if active == 0:
+    def _sampled_policies(self) -> Tensor:
+        """``[K_sampled]`` the active policies that draw a sample at the next ask: all of
+        them, or the ``max_sampled`` with the best kept returns (ties: the lower index).
+
+        A waiting policy's best return stays as it is while the sampled ones' only grow: it
+        gets its turn when one ahead of it retires (converged) or is dropped, or when a
+        clustering reshapes the policies."""
+        index = self.active.nonzero().squeeze(-1)
+        if self.max_sampled is None or index.numel() <= self.max_sampled:
+            return index
+        best = self.policy_best_rewards[index]
+        ahead = torch.argsort(best, descending=True, stable=True)[: self.max_sampled]
+        return index[ahead].sort().values
+
+    def _scouts_next(self, sampled: int) -> int:
+        """Scouts in the next ask, whose ``sampled`` policies draw a sample each: ``explore``
+        per policy sample on average; a fresh ``n0`` when every policy has been retired (a
+        restart)."""
+        if not bool(self.active.any()):
             # A restart, with or without scouts: an empty ask would end the run.
             return self.n0
-        after = self.policy_samples + active
+        after = self.policy_samples + sampled
         return math.floor(self.explore * after) - math.floor(self.explore * self.policy_samples)
 
     # ------------------------------------------------------------------ tell

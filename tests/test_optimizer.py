@@ -112,6 +112,8 @@ def test_tell_without_ask_and_positive_rewards_without_range():
         ({"reward_range": (1.0, 0.0)}, "high > low"),
         ({"cluster_every": 0}, "cluster_every"),
         ({"auxiliary": "fast"}, "auxiliary must be 'auto', 'fresh' or 'reuse'"),
+        ({"max_sampled": 0}, "max_sampled must be a positive integer or None"),
+        ({"max_sampled": 2.5}, "max_sampled must be a positive integer or None"),
     ],
 )
 def test_bad_constructor_arguments(kwargs, message):
@@ -266,7 +268,7 @@ def test_long_successful_run_retires_converged_policies_and_keeps_going():
     retired = opt.policy_means[~opt.active]
     assert ((retired.abs() - 1).abs().amax(-1) < 1e-2).all()
     asked = opt.ask()
-    assert (opt.asked_owner >= 0).sum() == opt.active.sum()
+    assert (opt.asked_owner >= 0).sum() == min(int(opt.active.sum()), opt.max_sampled)
     assert asked.shape[0] >= int(opt.active.sum())
 
 

@@ -1,0 +1,89 @@
+"""max_sampled: with more active policies than it, only the ones with the best kept returns
+are sampled in an iteration; the others wait unchanged and get their turn later."""
+
+import pytest
+import torch
+from test_many_optima import equal_maxima, set_policies
+
+from dipole_torch import Dipole
+
+DTYPE = torch.float64
+OPTIMA = (0.1, 0.3, 0.5, 0.7, 0.9)
+
+
+def started(max_sampled, seed=0) -> Dipole:
+    opt = Dipole(
+        torch.tensor([0.5], dtype=DTYPE),
+        torch.tensor([[0.25**2]], dtype=DTYPE),
+        bounds=(0.0, 1.0),
+        max_sampled=max_sampled,
+        explore=0.0,
+        generator=torch.Generator().manual_seed(seed),
+    )
+    theta = opt.ask()
+    opt.tell(theta, equal_maxima(theta))
+    return opt
+
+
+def five_policies(opt: Dipole) -> None:
+    # One policy on each hill, its kept sample off the top by a different amount (returns
+    # 0.9998 … 0.63: policy 4 best, then 3, 1, 0, 2); policy 4 is retired.
+    # Each mean is eq. 7's average of its kept samples (its one sample), as after a step.
+    samples = [0.115, 0.305, 0.53, 0.701, 0.9005]
+    set_policies(
+        opt,
+        means=samples,
+        stds=[0.02, 0.02, 0.02, 0.02, 1e-4],
+        active=[True, True, True, True, False],
+        samples=samples,
+    )
+    opt.iteration = 1  # the next tell is no clustering
+    opt._clear_pairs()
+
+
+def test_only_the_best_max_sampled_active_policies_are_asked_and_the_others_wait():
+    opt = started(max_sampled=2)
+    five_policies(opt)
+    assert opt.policy_best_rewards.argsort(descending=True).tolist()[:3] == [4, 3, 1]
+    theta = opt.ask()
+    owners = opt.asked_owner
+    # Policy 4's return is the best, but it is retired: 3 and 1 are asked.
+    assert sorted(owners[owners >= 0].tolist()) == [1, 3]
+    state = ("policy_means", "policy_covariances", "success")
+    before = {name: getattr(opt, name).clone() for name in state}
+    opt.tell(theta, equal_maxima(theta))
+    assert opt.num_policies == 5
+    waiting = torch.tensor([0, 2, 4])
+    for name in state:
+        assert torch.equal(getattr(opt, name)[waiting], before[name][waiting]), name
+    asked = torch.tensor([1, 3])
+    assert not torch.equal(opt.policy_covariances[asked], before["policy_covariances"][asked])
+
+
+def test_without_a_limit_every_active_policy_is_asked():
+    opt = started(max_sampled=None)
+    five_policies(opt)
+    opt.ask()
+    owners = opt.asked_owner
+    assert sorted(owners[owners >= 0].tolist()) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_waiting_policies_get_their_turn_and_every_optimum_converges(seed):
+    # One policy sampled at a time: the others wait until it retires, and by the end every
+    # one of the five hills holds a policy converged on its top.
+    opt = Dipole(
+        torch.tensor([0.5], dtype=DTYPE),
+        torch.tensor([[0.25**2]], dtype=DTYPE),
+        bounds=(0.0, 1.0),
+        max_sampled=1,
+        generator=torch.Generator().manual_seed(seed),
+    )
+    while opt.trials < 1500:
+        theta = opt.ask()
+        owners = opt.asked_owner
+        assert not opt.iteration or int((owners >= 0).sum()) <= 1
+        opt.tell(theta, equal_maxima(theta))
+    means = opt.policy_means[:, 0]
+    for optimum in OPTIMA:
+        assert bool(((means - optimum).abs() < 1e-3).any()), f"{optimum}: {means.tolist()}"
