@@ -203,13 +203,14 @@ def load_resume(cfg: DictConfig) -> dict:
     if not isinstance(saved, dict):
         raise CheckpointError(f"{cfg.resume!r} holds no config (got {type(saved).__name__})")
     current = OmegaConf.to_container(cfg, resolve=True)
+    filled = {}  # keys the checkpoint predates, with the values its run had
     for key, value in ADDED_KEYS.items():
         if key in flatten(current) and key not in flatten(saved):
             *parents, leaf = key.split(".")
             node = saved
             for parent in parents:
                 node = node.setdefault(parent, {})
-            node[leaf] = value
+            node[leaf] = filled[key] = value
     env = saved.get("task", {}).get("env")
     target = env.get("_target_") if isinstance(env, dict) else None
     for old, new in MOVED_PREFIXES.items():
@@ -225,6 +226,12 @@ def load_resume(cfg: DictConfig) -> dict:
                 f"and {len(differences) - 8} more: " + ", ".join(k for k, *_ in differences[8:])
             )
         command = checkpoint.get("overrides")
+        if command is not None:
+            # A key added since, whose default has changed too (algo.optimizer.max_sampled):
+            # the run resumes with the value it had.
+            command = command + [
+                f"{key}={json.dumps(filled[key])}" for key, *_ in differences if key in filled
+            ]
         raise CheckpointError(
             f"cannot resume {cfg.resume!r}: the config differs from the checkpoint's in "
             f"{len(differences)} key(s) that must match: {'; '.join(shown)}. "

@@ -17,6 +17,7 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
+import pytest
 import torch
 from test_train import train
 
@@ -146,9 +147,12 @@ def test_a_checkpoint_naming_the_old_task_module_resumes(tmp_path):
     assert json.loads((run / "results.json").read_text())["trials"] == 40
 
 
-def resumes_without(tmp_path, common: tuple[str, ...], lines_removed: tuple[str, ...]) -> None:
+def resumes_without(
+    tmp_path, common: tuple[str, ...], lines_removed: tuple[str, ...], resume: tuple = ()
+) -> None:
     """Train 20 trials, remove ``lines_removed`` (each present once) from the checkpoint's
-    config, as a checkpoint from before those keys existed, and resume to 40 trials."""
+    config, as a checkpoint from before those keys existed, and resume to 40 trials (with
+    the overrides ``resume``)."""
     run = tmp_path / "run"
     train(*common, "trials=20", f"hydra.run.dir={run}")
     checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
@@ -157,7 +161,7 @@ def resumes_without(tmp_path, common: tuple[str, ...], lines_removed: tuple[str,
     assert len(old) == len(lines) - len(lines_removed)
     checkpoint["config"] = "\n".join(old) + "\n"
     torch.save(checkpoint, run / "checkpoint.pt")
-    train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
+    train(*common, "trials=40", *resume, f"resume={run / 'checkpoint.pt'}")
     assert json.loads((run / "results.json").read_text())["trials"] == 40
 
 
@@ -166,6 +170,18 @@ def test_a_checkpoint_from_before_pair_points_bounds_and_auxiliary_resumes(tmp_p
     lack them: they resume with their defaults (the midpoint test, no box, auto draws)."""
     common = ("task=multimodal", "algo=dipole", "figure_every=0")
     resumes_without(tmp_path, common, ("pair_points: 1", "bounds: null", "auxiliary: auto"))
+
+
+def test_a_checkpoint_from_before_max_sampled_resumes_as_it_ran(tmp_path):
+    """A checkpoint from before algo.optimizer.max_sampled sampled every active policy: the
+    default (4) would change its run, so resuming refuses and names the override that
+    resumes it as it ran (null), which then works."""
+    common = ("task=multimodal", "algo=dipole", "figure_every=0")
+    with pytest.raises(AssertionError, match=r"algo\.optimizer\.max_sampled=null"):
+        resumes_without(tmp_path / "plain", common, ("max_sampled: 4",))
+    resumes_without(
+        tmp_path / "null", common, ("max_sampled: 4",), ("algo.optimizer.max_sampled=null",)
+    )
 
 
 def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
