@@ -133,9 +133,10 @@ class PolicySearch:
         iteration: number of tells after the initial batch.
         last_rewards: ``[K]`` each policy's latest return: the returns of the latest told
             batch's policy samples (the whole batch after the first tell), then, for each
-            retired policy (DIPOLE's, no longer sampled), the mean return of its kept
-            samples. Exploration samples that belong to no policy (DIPOLE's scouts and
-            probes) are not in it.
+            policy that drew no sample in it (DIPOLE's retired policies, and those waiting
+            their turn, see ``max_sampled``), the mean return of its kept samples.
+            Exploration samples that belong to no policy (DIPOLE's scouts and probes) are
+            not in it.
         thetas, rewards, owner: ``[N, D]``, ``[N]``, ``[N]`` the kept samples, their returns
             and the policy owning each (−1: a scout that belongs to no policy yet).
         active: ``[K]`` which policies are still sampled (DIPOLE retires converged ones).
@@ -341,10 +342,11 @@ class PolicySearch:
         if first:
             self.last_rewards = rewards
         else:
-            # Each policy's latest return: active ones were just sampled; a retired one is
-            # no longer sampled and keeps the mean return of its kept samples.
-            retired = self._retired_rewards()
-            self.last_rewards = torch.cat((rewards[owner >= 0], retired))
+            # Each policy's latest return: the sampled ones' new returns; a policy that drew
+            # no sample (retired, or waiting its turn) keeps the mean return of its kept
+            # samples.
+            sampled = owner[owner >= 0]
+            self.last_rewards = torch.cat((rewards[owner >= 0], self._unsampled_rewards(sampled)))
         best = int(rewards.argmax())
         if float(rewards[best]) > self._best_reward:
             self._best_reward = float(rewards[best])
@@ -417,10 +419,13 @@ class PolicySearch:
             hurt[:, None, None], self.sigma_start, self.policy_covariances
         )
 
-    def _retired_rewards(self) -> Tensor:
-        """``[R]`` the mean kept return of each retired policy."""
-        retired = (~self.active).nonzero().squeeze(-1)
-        if retired.numel() == 0:
+    def _unsampled_rewards(self, sampled: Tensor) -> Tensor:
+        """``[K − S]`` the mean kept return of each policy not among the ``sampled [S]``
+        (retired, or waiting its turn), in policy order."""
+        unsampled = torch.ones(self.num_policies, dtype=torch.bool, device=self.device)
+        unsampled[sampled] = False
+        held = unsampled.nonzero().squeeze(-1)
+        if held.numel() == 0:
             return self.rewards[:0]
         owned = self.owner >= 0
         k = self.num_policies
@@ -428,7 +433,7 @@ class PolicySearch:
             0, self.owner[owned], self.rewards[owned]
         )
         count = torch.bincount(self.owner[owned], minlength=k).clamp_min(1)
-        return (total / count)[retired]
+        return (total / count)[held]
 
     def best(self) -> tuple[Tensor, float]:
         """The best parameters evaluated so far and their return: ``([D], float)``."""

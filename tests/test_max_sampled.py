@@ -25,7 +25,7 @@ def started(max_sampled, seed=0) -> Dipole:
     return opt
 
 
-def five_policies(opt: Dipole) -> None:
+def five_policies(opt: Dipole) -> list[float]:
     # One policy on each hill, its kept sample off the top by a different amount (returns
     # 0.9998 … 0.63: policy 4 best, then 3, 1, 0, 2); policy 4 is retired.
     # Each mean is eq. 7's average of its kept samples (its one sample), as after a step.
@@ -39,11 +39,12 @@ def five_policies(opt: Dipole) -> None:
     )
     opt.iteration = 1  # the next tell is no clustering
     opt._clear_pairs()
+    return samples
 
 
 def test_only_the_best_max_sampled_active_policies_are_asked_and_the_others_wait():
     opt = started(max_sampled=2)
-    five_policies(opt)
+    samples = five_policies(opt)
     assert opt.policy_best_rewards.argsort(descending=True).tolist()[:3] == [4, 3, 1]
     theta = opt.ask()
     owners = opt.asked_owner
@@ -56,6 +57,10 @@ def test_only_the_best_max_sampled_active_policies_are_asked_and_the_others_wait
     waiting = torch.tensor([0, 2, 4])
     for name in state:
         assert torch.equal(getattr(opt, name)[waiting], before[name][waiting]), name
+    # Every policy has a latest return: the two samples', then the kept means of the others.
+    assert opt.last_rewards.shape == (5,)
+    kept = equal_maxima(torch.tensor(samples, dtype=DTYPE)[waiting, None])
+    assert torch.equal(opt.last_rewards[2:], kept)
     asked = torch.tensor([1, 3])
     assert not torch.equal(opt.policy_covariances[asked], before["policy_covariances"][asked])
 
