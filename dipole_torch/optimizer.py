@@ -236,7 +236,8 @@ class PolicySearch:
 
         Returns:
             ``[n0, D]`` draws from N(θ0, Σ_start) on the first call; afterwards ``[B, D]``:
-            one row per active policy, drawn from its Gaussian, then any exploration rows
+            one row per sampled policy (every active one; DIPOLE's default at most
+            ``max_sampled``), drawn from its Gaussian, then any exploration rows
             (see :attr:`asked_owner`). Asking again before telling discards the previous
             proposal.
         """
@@ -641,8 +642,9 @@ class Dipole(PolicySearch):
     """DIPOLE (Algorithm 2): PoWER on every component of a reward-weighted DP mixture.
 
     * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per active policy
-      from its exploration Gaussian, ``explore`` scouts per policy sample (on average) from
-      N(θ0, Σ_start) that belong to no policy yet, and any hill-valley probes (see below);
+      (the ``max_sampled`` best at most) from its exploration Gaussian, ``explore`` scouts
+      per policy sample (on average) from N(θ0, Σ_start) that belong to no policy yet, and
+      any hill-valley probes (see below);
       :attr:`asked_owner` says which row is which.
     * ``tell()``: a PoWER step (eq. 7) per policy on its best M samples; after the initial
       batch and every ``cluster_every`` iterations, a weighted DP clustering (eq. 6, Neal's
