@@ -10,7 +10,7 @@ logging and checkpoints, results. Everything else lives in ``dipole_torch`` (the
 Outputs (Hydra's run directory, ``outputs/<task>/<algo>/seed<seed>_<time>/``):
 
 * ``tensorboard/`` -- scalars against trials: ``reward/best``, ``reward/mean`` (best and
-  mean return of the latest batch, one sample per policy), ``reward/best_so_far``,
+  mean of each policy's latest return, ``last_rewards``), ``reward/best_so_far``,
   ``policies/count``, ``policies/exploration_std``; histogram ``policies/rewards``; the
   task's policy figure where it has one.
 * ``results.json`` -- final policies, best return, learning curves.
