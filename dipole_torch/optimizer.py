@@ -333,7 +333,8 @@ class PolicySearch:
             self._forget_probes()  # a test whose probe was not told cannot be judged
         self._pending = self._pending_owner = None
         self._before_append(owner, theta, rewards)
-        self.policy_samples += int((owner >= 0).sum()) if not first else 0
+        policy_rows = owner >= 0
+        self.policy_samples += int(policy_rows.sum()) if not first else 0
         probe = owner == PROBE
         self.probe_rewards = rewards[probe]
         self.thetas = torch.cat((self.thetas, theta[~probe]))
@@ -346,8 +347,8 @@ class PolicySearch:
             # Each policy's latest return: the sampled ones' new returns; a policy that drew
             # no sample (retired, or waiting its turn) keeps the mean return of its kept
             # samples.
-            sampled = owner[owner >= 0]
-            self.last_rewards = torch.cat((rewards[owner >= 0], self._unsampled_rewards(sampled)))
+            held = self._unsampled_rewards(owner[policy_rows])
+            self.last_rewards = torch.cat((rewards[policy_rows], held))
         best = int(rewards.argmax())
         if float(rewards[best]) > self._best_reward:
             self._best_reward = float(rewards[best])
@@ -947,7 +948,7 @@ class Dipole(PolicySearch):
         A waiting policy's best return stays as it is while the sampled ones' only grow: it
         gets its turn when one ahead of it retires (converged) or is dropped, or when a
         clustering reshapes the policies."""
-        index = self.active.nonzero().squeeze(-1)
+        index = super()._sampled_policies()
         if self.max_sampled is None or index.numel() <= self.max_sampled:
             return index
         best = self.policy_best_rewards[index]
