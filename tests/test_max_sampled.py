@@ -11,15 +11,21 @@ DTYPE = torch.float64
 OPTIMA = (0.1, 0.3, 0.5, 0.7, 0.9)
 
 
-def started(max_sampled, seed=0) -> Dipole:
-    opt = Dipole(
+def build(max_sampled, seed=0, **kwargs) -> Dipole:
+    """A 1-D DIPOLE on [0, 1] (Σ_start std 0.25)."""
+    return Dipole(
         torch.tensor([0.5], dtype=DTYPE),
         torch.tensor([[0.25**2]], dtype=DTYPE),
         bounds=(0.0, 1.0),
         max_sampled=max_sampled,
-        explore=0.0,
         generator=torch.Generator().manual_seed(seed),
+        **kwargs,
     )
+
+
+def started(max_sampled) -> Dipole:
+    """``build``'s optimizer without scouts, after its first tell."""
+    opt = build(max_sampled, explore=0.0)
     theta = opt.ask()
     opt.tell(theta, equal_maxima(theta))
     return opt
@@ -77,13 +83,7 @@ def test_without_a_limit_every_active_policy_is_asked():
 def test_waiting_policies_get_their_turn_and_every_optimum_converges(seed):
     # One policy sampled at a time: the others wait until it retires, and by the end every
     # one of the five hills holds a policy converged on its top.
-    opt = Dipole(
-        torch.tensor([0.5], dtype=DTYPE),
-        torch.tensor([[0.25**2]], dtype=DTYPE),
-        bounds=(0.0, 1.0),
-        max_sampled=1,
-        generator=torch.Generator().manual_seed(seed),
-    )
+    opt = build(max_sampled=1, seed=seed)
     while opt.trials < 1500:
         theta = opt.ask()
         owners = opt.asked_owner
