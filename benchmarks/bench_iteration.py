@@ -9,6 +9,15 @@ iteration, averaged over whole runs (clusterings included; the first tell, which
 first clustering of 20 sweeps, is counted in the average and also shown on its own), and
 each DIPOLE figure as a ratio to PoWER's. Timings are the median over ``--seeds`` runs.
 Runs at D >= 50 are capped at ``--big-trials`` evaluations (their clusterings dominate).
+
+A second table says where DIPOLE's time goes: the milliseconds per iteration spent in its
+clusterings' Gibbs sweeps (``fit_dp_mixture``) and in the rest of ``ask`` and ``tell``
+(PoWER steps, success rule, scouts, hill-valley tests, matching the clusters to policies),
+each against PoWER's whole iteration; the trials an iteration evaluates (PoWER one, DIPOLE
+one per sampled policy plus scouts and probes) and the time per trial; and, with
+``--count-ops``, the torch calls an iteration makes (functions and tensor methods, counted
+in one more run per D; the label loop's numpy calls are not counted): at a few microseconds
+of dispatch each, they set the floor of an iteration at these sizes.
 """
 
 from __future__ import annotations
@@ -18,10 +27,12 @@ import statistics
 import time
 
 import torch
+from torch.overrides import TorchFunctionMode
 
 from dipole_torch import Dipole, Power
 
 DTYPE = torch.float64
+NAMES = ("power", "dipole", "dipole_paper")
 
 
 def reward(theta: torch.Tensor) -> torch.Tensor:
@@ -43,9 +54,35 @@ def make(name: str, d: int, seed: int):
     return Dipole(theta0, sigma, n0=10, generator=g)
 
 
-def run(name: str, d: int, trials: int, seed: int) -> tuple[float, float]:
-    """One whole run: (seconds per iteration over all tells, seconds of the first tell)."""
+class CountCalls(TorchFunctionMode):
+    """Counts the torch functions and tensor methods called under it."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        self.calls += 1
+        return func(*args, **(kwargs or {}))
+
+
+def run(name: str, d: int, trials: int, seed: int) -> dict[str, float]:
+    """One whole run. Returns seconds per iteration over all tells (``per_iter``), of the
+    first tell (``first``), in DIPOLE's clusterings per iteration (``clustering``; 0 for
+    PoWER) and trials per iteration (``trials``)."""
     opt = make(name, d, seed)
+    fitting = 0.0
+    if isinstance(opt, Dipole):
+        fit = opt._fit
+
+        def timed_fit(*args, **kwargs):  # the Gibbs sweeps of one clustering
+            nonlocal fitting
+            start = time.perf_counter()
+            state = fit(*args, **kwargs)
+            fitting += time.perf_counter() - start
+            return state
+
+        opt._fit = timed_fit
     total, first, tells = 0.0, 0.0, 0
     while opt.trials < trials:
         start = time.perf_counter()
@@ -59,7 +96,26 @@ def run(name: str, d: int, trials: int, seed: int) -> tuple[float, float]:
             first = elapsed
         total += elapsed
         tells += 1
-    return total / tells, first
+    return {
+        "per_iter": total / tells,
+        "first": first,
+        "clustering": fitting / tells,
+        "trials": opt.trials / tells,
+    }
+
+
+def torch_calls(name: str, d: int, trials: int, seed: int) -> float:
+    """Torch calls per iteration of one whole run (``ask`` and ``tell`` only)."""
+    opt = make(name, d, seed)
+    counter, tells = CountCalls(), 0
+    while opt.trials < trials:
+        with counter:
+            theta = opt.ask()
+        r = reward(theta)
+        with counter:
+            opt.tell(theta, r)
+        tells += 1
+    return counter.calls / tells
 
 
 def main() -> None:
@@ -68,29 +124,58 @@ def main() -> None:
     parser.add_argument("--big-trials", type=int, default=60, help="trials at D >= 50")
     parser.add_argument("--dims", type=int, nargs="+", default=[2, 10, 50, 200])
     parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--count-ops", action="store_true", help="count torch calls (slower)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    names = ("power", "dipole", "dipole_paper")
+    for name in NAMES:  # first-call costs (lazy init) out of the table
+        run(name, 2, 20, 0)
     header = (
         f"{'D':>4} {'trials':>6} {'PoWER ms':>9} {'DIPOLE ms':>10} {'paper ms':>9} "
         f"{'DIPOLE/PoWER':>13} {'paper/PoWER':>12} {'DIPOLE 1st tell s':>18}"
     )
-    for name in names:  # first-call costs (lazy init) out of the table
-        run(name, 2, 20, 0)
     print(header)
     print("-" * len(header))
+    breakdown = []
     for d in args.dims:
         trials = args.trials if d < 50 else args.big_trials
-        per_iter, first = {}, {}
-        for name in names:
+        med = {}
+        for name in NAMES:
             results = [run(name, d, trials, seed) for seed in range(args.seeds)]
-            per_iter[name] = 1e3 * statistics.median(r[0] for r in results)
-            first[name] = statistics.median(r[1] for r in results)
-        base = per_iter["power"]
+            med[name] = {key: statistics.median(r[key] for r in results) for key in results[0]}
+        base = 1e3 * med["power"]["per_iter"]
+        dipole, paper = 1e3 * med["dipole"]["per_iter"], 1e3 * med["dipole_paper"]["per_iter"]
         print(
-            f"{d:>4} {trials:>6} {base:>9.2f} {per_iter['dipole']:>10.2f} "
-            f"{per_iter['dipole_paper']:>9.2f} {per_iter['dipole'] / base:>13.2f} "
-            f"{per_iter['dipole_paper'] / base:>12.2f} {first['dipole']:>18.3f}",
+            f"{d:>4} {trials:>6} {base:>9.2f} {dipole:>10.2f} {paper:>9.2f} "
+            f"{dipole / base:>13.2f} {paper / base:>12.2f} {med['dipole']['first']:>18.3f}",
+            flush=True,
+        )
+        calls = None
+        if args.count_ops:
+            calls = {name: torch_calls(name, d, trials, 0) for name in ("power", "dipole")}
+        breakdown.append((d, med, calls))
+    print()
+    print("where DIPOLE's time goes (ms per iteration; ratios to PoWER's whole iteration):")
+    header = (
+        f"{'D':>4} {'clustering ms':>14} {'rest ms':>8} {'clust/PoWER':>12} {'rest/PoWER':>11} "
+        f"{'PoWER trials/it':>16} {'DIPOLE trials/it':>17} {'per-trial ratio':>16} "
+        f"{'PoWER calls/it':>15} {'DIPOLE calls/it':>16}"
+    )
+    print(header)
+    print("-" * len(header))
+    for d, med, calls in breakdown:
+        base = 1e3 * med["power"]["per_iter"]
+        clustering = 1e3 * med["dipole"]["clustering"]
+        rest = 1e3 * med["dipole"]["per_iter"] - clustering
+        per_trial = (med["dipole"]["per_iter"] / med["dipole"]["trials"]) / (
+            med["power"]["per_iter"] / med["power"]["trials"]
+        )
+        counted = (
+            f"{calls['power']:>15.0f} {calls['dipole']:>16.0f}" if calls else f"{'-':>15} {'-':>16}"
+        )
+        print(
+            f"{d:>4} {clustering:>14.2f} {rest:>8.2f} {clustering / base:>12.2f} "
+            f"{rest / base:>11.2f} {med['power']['trials']:>16.2f} "
+            f"{med['dipole']['trials']:>17.2f} {per_trial:>16.2f} {counted}",
             flush=True,
         )
 
