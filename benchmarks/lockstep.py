@@ -4,6 +4,7 @@ best-policy / average-policy figure."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -28,20 +29,28 @@ def load_task(name: str, **overrides):
 
 
 def run_in_lockstep(
-    task, optimizers: list, trials: int, generator: torch.Generator | None = None
+    task,
+    optimizers: list,
+    trials: int | Sequence[int],
+    generator: torch.Generator | None = None,
 ) -> list[np.ndarray]:
-    """Ask/tell every optimizer until it has used ``trials`` reward evaluations.
+    """Ask/tell every optimizer until it has used its ``trials`` reward evaluations (one
+    budget for all, or one per optimizer).
 
     Each iteration stacks the active runs' ``ask()`` into one ``task.evaluate`` call (tasks
-    are batch-independent) and splits the returns back for ``tell()``.
+    are batch-independent) and splits the returns back for ``tell()``. A run's result
+    depends on its own seed and budget only, not on the runs it is stacked with.
 
     Returns:
         Per run, rows ``[trials, best, average, policies]`` after every tell: the highest and
         the mean return of the batch just told, and the number of policies.
     """
+    budgets = [trials] * len(optimizers) if isinstance(trials, int) else list(trials)
+    if len(budgets) != len(optimizers):
+        raise ValueError(f"{len(budgets)} budgets for {len(optimizers)} optimizers")
     history: list[list[tuple[int, float, float, int]]] = [[] for _ in optimizers]
     while True:
-        active = [i for i, opt in enumerate(optimizers) if opt.trials < trials]
+        active = [i for i, opt in enumerate(optimizers) if opt.trials < budgets[i]]
         if not active:
             break
         asked = [optimizers[i].ask() for i in active]

@@ -96,19 +96,20 @@ class PerRunLayouts:
     """The task :func:`lockstep.run_in_lockstep` sees when each run has its own obstacles:
     the stacked asks' arm paths are rolled out once (obstacles do not move the arm) and each
     run's rows are scored on its own layout. ``run_in_lockstep`` stacks the pending asks of
-    the runs below ``trials``, in order: their sizes are the optimizers' ``asked_owner``.
+    the runs below their ``trials`` (one budget per run), in order: their sizes are the
+    optimizers' ``asked_owner``.
 
     The same rollout also scores every active run's policy means (not trials: evaluation
     rollouts for the record): ``policy_mean_returns[i][trials]`` is the best policy mean's
     return of run i when it had made ``trials`` trials."""
 
-    def __init__(self, tasks: list, optimizers: list, trials: int) -> None:
+    def __init__(self, tasks: list, optimizers: list, trials: list[int]) -> None:
         self.tasks, self.optimizers, self.trials = tasks, optimizers, trials
         self.dtype = tasks[0].dtype
         self.policy_mean_returns: list[dict[int, float]] = [{} for _ in optimizers]
 
     def evaluate(self, theta: torch.Tensor, generator=None) -> torch.Tensor:
-        active = [i for i, opt in enumerate(self.optimizers) if opt.trials < self.trials]
+        active = [i for i, opt in enumerate(self.optimizers) if opt.trials < self.trials[i]]
         sizes = [len(self.optimizers[i].asked_owner) for i in active]
         assert sum(sizes) == theta.shape[0], (sizes, theta.shape)
         means = [self.optimizers[i].policy_means.to(theta) for i in active]
@@ -223,7 +224,9 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
     run_in_lockstep(task, optimizers, trials)  # the open layout
     for run in runs:
         block(task, run, radius, threshold)
-    end = max(run["block_trial"] for run in runs) + after
+    # Each run goes on for `after` trials from its own block: a common end (the latest
+    # block + after) gave a run more trials when another run in its process overshot 300.
+    end = [run["block_trial"] + after for run in runs]
     layouts = PerRunLayouts([run["task"] for run in runs], optimizers, end)
     histories = run_in_lockstep(layouts, optimizers, end)
     for run, history, means in zip(runs, histories, layouts.policy_mean_returns, strict=True):
@@ -245,7 +248,7 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
         if run["algo"] == "DIPOLE"
     ]
     optimizers = [run["opt"] for run in scratch]
-    layouts = PerRunLayouts([run["task"] for run in scratch], optimizers, after)
+    layouts = PerRunLayouts([run["task"] for run in scratch], optimizers, [after] * len(scratch))
     histories = run_in_lockstep(layouts, optimizers, after)
     for run, history, means in zip(scratch, histories, layouts.policy_mean_returns, strict=True):
         finish(run, means, threshold)
