@@ -248,8 +248,9 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
         if run["algo"] == "DIPOLE"
     ]
     optimizers = [run["opt"] for run in scratch]
-    layouts = PerRunLayouts([run["task"] for run in scratch], optimizers, [after] * len(scratch))
-    histories = run_in_lockstep(layouts, optimizers, after)
+    budgets = [after] * len(scratch)
+    layouts = PerRunLayouts([run["task"] for run in scratch], optimizers, budgets)
+    histories = run_in_lockstep(layouts, optimizers, budgets)
     for run, history, means in zip(scratch, histories, layouts.policy_mean_returns, strict=True):
         finish(run, means, threshold)
         run["rows"] = curves_since(history, run["opt"].best_returns, means, 0)
