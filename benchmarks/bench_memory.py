@@ -3,6 +3,9 @@ its auxiliary components at once, measured in the same run.
 
     python benchmarks/bench_memory.py [--n 10000] [--dim 51] [--m 10] [--threads 1]
 
+Linux (``/proc`` and ``ru_maxrss``); the data come from ``bench_gibbs.py``, which needs the
+``bench`` extra (``pip install -e ".[bench]"``).
+
 Data: N points of 4 unit Gaussians in p dimensions (``bench_gibbs.make_data``), the chain
 started from the true partition (``DPMixtureState.from_labels``) under ``bench_gibbs``'s
 fixed prior. Each case runs in a fresh Python process, so its peak resident set size
