@@ -15,9 +15,10 @@ clusterings' Gibbs sweeps (``fit_dp_mixture``) and in the rest of ``ask`` and ``
 (PoWER steps, success rule, scouts, hill-valley tests, matching the clusters to policies),
 each against PoWER's whole iteration; the trials an iteration evaluates (PoWER one, DIPOLE
 one per sampled policy plus scouts and probes) and the time per trial; and, with
-``--count-ops``, the torch calls an iteration makes (functions and tensor methods, counted
-in one more run per D; the label loop's numpy calls are not counted): at a few microseconds
-of dispatch each, they set the floor of an iteration at these sizes.
+``--count-ops``, the torch calls an iteration makes (functions, tensor methods and tensor
+property reads such as ``.shape``, which cost far less, so the count bounds the dispatches
+from above; counted in one more run per D; the label loop's numpy calls are not counted):
+at a few microseconds of dispatch each, they set the floor of an iteration at these sizes.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def make(name: str, d: int, seed: int):
 
 
 class CountCalls(TorchFunctionMode):
-    """Counts the torch functions and tensor methods called under it."""
+    """Counts the torch functions, tensor methods and tensor property reads under it."""
 
     def __init__(self):
         super().__init__()
