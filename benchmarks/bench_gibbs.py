@@ -4,19 +4,20 @@ variational Dirichlet-process mixture on the same data, with each one's clusteri
     python benchmarks/bench_gibbs.py [--repeats 2] [--sizes 1000 10000] [--dims 2 10]
 
 Data: N points from 4 well-separated unit Gaussians in D dimensions (centres 8·N(0, I)).
-Ours: ``fit_dp_mixture(init="sequential")`` with H fixed (means spread like the data,
-E[Σ] = 2 I), then sweeps until the partition settles: two consecutive sweeps whose labels
-agree with the previous sweep's at ARI ≥ 0.999 (at most ``--max-sweeps``). Timed: the
-initial pass and every sweep (the convergence check is not). The anchor, timed in the same
-run on the same data: ``BayesianGaussianMixture(weight_concentration_prior_type=
-"dirichlet_process", n_components=10, covariance_type="full")`` fitted to its own
-convergence (tol 1e-3, max_iter 100). Printed: seconds and ARI against the true labels for
-both, our sweeps and seconds per sweep, and the time ratio ours / sklearn; then the same
-run with Favaro & Teh (2013)'s re-used auxiliary draws (``reuse_auxiliary=True``, CPU), and
-with the slice sampler (``fit_dp_mixture(sampler="slice")``: every label drawn at once, from
-the same sequential start) (best of ``--repeats`` seeds for the time, the ARI of that run).
-``--device cuda`` runs Algorithm 8 and the slice sampler on the GPU (Algorithm 8's label loop
-never waits for the device within a chunk of points).
+Ours: ``DPSampler(prior, update_prior=False).fit(init="sequential")`` with H fixed (means
+spread like the data, E[Σ] = 2 I), then sweeps until the partition settles: two consecutive
+sweeps whose labels agree with the previous sweep's at ARI ≥ 0.999 (at most
+``--max-sweeps``). Timed: the initial pass and every sweep (the convergence check is not). The
+anchor, timed in the same run on the same data:
+``BayesianGaussianMixture(weight_concentration_prior_type="dirichlet_process",
+n_components=10, covariance_type="full")`` fitted to its own convergence (tol 1e-3, max_iter
+100). Printed: seconds and ARI against the true labels for both, our sweeps and seconds per
+sweep, and the time ratio ours / sklearn; then the same run with Favaro & Teh (2013)'s
+re-used auxiliary draws (``auxiliary="reuse"``, CPU), and with the slice sampler
+(``method="slice"``: every label drawn at once, from the same sequential start) (best of
+``--repeats`` seeds for the time, the ARI of that run).
+``--device cuda`` runs Algorithm 8 and the slice sampler on the GPU (Algorithm 8's label
+loop never waits for the device within a chunk of points).
 """
 
 from __future__ import annotations
@@ -31,8 +32,7 @@ from sklearn.metrics import adjusted_rand_score
 from sklearn.mixture import BayesianGaussianMixture
 from threadpoolctl import threadpool_limits
 
-from dipole_torch import NormalInverseWishartPrior, fit_dp_mixture, neal8_sweep
-from dipole_torch.slice_sampler import SliceChain, slice_sweep
+from dipole_torch import DPSampler, NormalInverseWishartPrior
 
 DTYPE = torch.float64
 
@@ -66,21 +66,19 @@ def run_gibbs(
     prior = prior_for(y)
     g = torch.Generator(device).manual_seed(seed)
     start = time.perf_counter()
-    first = "slice" if sampler == "slice" else "neal8"
-    state = fit_dp_mixture(
-        y, prior, 1, generator=g, init="sequential", update_prior=False, sampler=first
-    )
-    chain = SliceChain.from_state(state) if sampler == "slice" else state
+    method = "slice" if sampler == "slice" else "neal8"
+    state = DPSampler(prior, update_prior=False, method=method).fit(
+        y, 1, generator=g, init="sequential"
+    )  # (the first sweep with fresh auxiliary draws)
+    auxiliary = "reuse" if sampler == "reuse" else "fresh"
+    dp = DPSampler(prior, update_prior=False, auxiliary=auxiliary, method=method)
+    chain = dp.to_chain(state)
     elapsed = time.perf_counter() - start
     sweeps, settled = 1, 0
     while sweeps < max_sweeps and settled < 2:
         previous = chain.labels
         start = time.perf_counter()
-        if sampler == "slice":
-            chain = slice_sweep(y, chain, generator=g, update_prior=False)
-        else:
-            reuse = sampler == "reuse"
-            chain = neal8_sweep(y, chain, generator=g, update_prior=False, reuse_auxiliary=reuse)
+        chain = dp.sweep(y, chain, g)
         if device != "cpu":
             torch.cuda.synchronize()
         elapsed += time.perf_counter() - start

@@ -11,7 +11,7 @@ each DIPOLE figure as a ratio to PoWER's. Timings are the median over ``--seeds`
 Runs at D >= 50 are capped at ``--big-trials`` evaluations (their clusterings dominate).
 
 A second table says where DIPOLE's time goes: the milliseconds per iteration spent in its
-clusterings' Gibbs sweeps (``fit_dp_mixture``) and in the rest of ``ask`` and ``tell``
+clusterings' Gibbs sweeps (``Dipole._fit``) and in the rest of ``ask`` and ``tell``
 (PoWER steps, success rule, scouts, hill-valley tests, matching the clusters to policies),
 each against PoWER's whole iteration; the trials an iteration evaluates (PoWER one, DIPOLE
 one per sampled policy plus scouts and probes) and the time per trial; and, with

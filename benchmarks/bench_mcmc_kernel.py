@@ -1,4 +1,4 @@
-"""Neal8Kernel under pyro.infer.MCMC against the direct sweep path (fit_dp_mixture).
+"""DPMixtureKernel under pyro.infer.MCMC against the sampler's own sweeps (DPSampler.fit).
 
 DIPOLE's clusterings run a few Gibbs sweeps on a small weighted data set; this times both
 paths on the same chains (same generator seed, so the same draws), interleaved and repeated,
@@ -19,8 +19,8 @@ import time
 import torch
 from pyro.infer import MCMC
 
-from dipole_torch import NormalInverseWishartPrior, fit_dp_mixture
-from dipole_torch.mcmc import Neal8Kernel
+from dipole_torch import DPSampler, NormalInverseWishartPrior
+from dipole_torch.mcmc import DPMixtureKernel
 
 F64 = torch.float64
 
@@ -47,15 +47,15 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     y, prior = data(args.points, args.dim)
-    options = dict(alpha=1.0, m=10, reward_weighted=True, update_prior=True)
+    sampler = DPSampler(prior, alpha=1.0, m=10, reward_weighted=True, update_prior=True)
 
     def direct(seed: int):
         g = torch.Generator().manual_seed(seed)
-        return fit_dp_mixture(y, prior, args.sweeps, generator=g, **options)
+        return sampler.fit(y, args.sweeps, generator=g)
 
     def kernel(seed: int, save_params=None):
         g = torch.Generator().manual_seed(seed)
-        k = Neal8Kernel(prior, generator=g, **options)
+        k = DPMixtureKernel(sampler, generator=g)
         mcmc = MCMC(
             k,
             num_samples=args.sweeps,

@@ -13,7 +13,7 @@ fixed prior. Each case runs in a fresh Python process, so its peak resident set 
 data), the peak during it, the growth (peak − before) and the sweep's seconds. Cases:
 
 * ``neal8``: Algorithm 8 as DIPOLE runs it, the N·m auxiliary draws made in chunks of points
-  (at most ``dipole_torch.dp_mixture._AUX_CHUNK_BYTES``, 64 MB, of covariances and factors
+  (at most ``dipole_torch.dp.neal8.AUX_CHUNK_BYTES``, 64 MB, of covariances and factors
   at once);
 * ``neal8, unchunked`` (the anchor): the same sweep with one chunk, i.e. all N·m auxiliary
   covariances and their factors at once (``--skip-unchunked`` leaves it out: it needs
@@ -36,8 +36,8 @@ import time
 import torch
 from bench_gibbs import make_data, prior_for
 
-from dipole_torch import DPMixtureState, dp_mixture, neal8_sweep
-from dipole_torch.slice_sampler import SliceChain, slice_sweep
+from dipole_torch import DPMixtureState, DPSampler
+from dipole_torch.dp import neal8
 
 # The anchor first, so every other row's ratio is to a figure already measured.
 CASES = ("neal8, unchunked", "neal8", "reuse", "slice")
@@ -63,13 +63,13 @@ def child(case: str, n: int, dim: int, m: int, threads: int) -> dict[str, float]
     state = DPMixtureState.from_labels(y, labels, prior)
     g = torch.Generator().manual_seed(0)
     if case == "neal8, unchunked":
-        dp_mixture._AUX_CHUNK_BYTES = 2**62
+        neal8.AUX_CHUNK_BYTES = 2**62
+    method = "slice" if case == "slice" else "neal8"
+    auxiliary = "reuse" if case == "reuse" else "fresh"
+    sampler = DPSampler(prior, m=m, update_prior=False, auxiliary=auxiliary, method=method)
     before = current_mb()
     start = time.perf_counter()
-    if case == "slice":
-        slice_sweep(y, SliceChain.from_state(state), generator=g, update_prior=False)
-    else:
-        neal8_sweep(y, state, m=m, generator=g, update_prior=False, reuse_auxiliary=case == "reuse")
+    sampler.sweep(y, sampler.to_chain(state), g)
     seconds = time.perf_counter() - start
     return {"before_mb": before, "peak_mb": peak_mb(), "seconds": seconds}
 
@@ -87,7 +87,7 @@ def main() -> None:
         print(json.dumps(child(args.child, args.n, args.dim, args.m, args.threads)))
         return
     all_at_once = 2 * args.n * args.m * args.dim**2 * 8 / 2**20
-    chunk = dp_mixture._AUX_CHUNK_BYTES / 2**20
+    chunk = neal8.AUX_CHUNK_BYTES / 2**20
     print(
         f"N = {args.n}, p = {args.dim}, m = {args.m}: all auxiliary covariances and factors "
         f"at once take {all_at_once:.0f} MB; a chunk at most {chunk:.0f} MB"

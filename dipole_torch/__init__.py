@@ -1,23 +1,43 @@
-"""dipole-torch: DIPOLE (Dirichlet-process policy learning) in PyTorch and Pyro."""
+"""dipole-torch: DIPOLE (Dirichlet-process policy learning) in PyTorch and Pyro.
 
+The optimizers (:class:`Dipole`, :class:`Power`), the DP mixture and its samplers
+(:class:`DPSampler`, :class:`DPMixtureState`), the Gaussian mixture of the policies
+(:class:`GaussianMixture`) and the Pyro side (:class:`DPMixtureKernel`,
+:func:`dp_mixture_model`, :class:`InverseWishart`; imported on first use, so that
+``import dipole_torch`` does not import Pyro).
+"""
+
+from importlib import import_module
 from pathlib import Path
 
-from dipole_torch.dp_mixture import (
-    DPMixture,
-    DPMixtureState,
-    fit_dp_mixture,
-    neal8_sweep,
-    reward_weights,
-)
+from dipole_torch.dipole import Dipole
+from dipole_torch.dp import DPMixtureState, DPSampler, SliceChain, reward_weights
 from dipole_torch.gaussian_mixture import GaussianMixture
-from dipole_torch.mcmc import Neal8Kernel, SliceKernel
-from dipole_torch.optimizer import Dipole, PolicySearch, Power
+from dipole_torch.options import DipoleOptions
 from dipole_torch.power import importance_sets, power_update
+from dipole_torch.power_optimizer import Power
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.pyro_model import InverseWishart, dp_log_joint, dp_mixture_model
+from dipole_torch.result import SearchResult
 from dipole_torch.reward import RewardScale
 from dipole_torch.sampling import draw
-from dipole_torch.slice_sampler import SliceChain, slice_sweep
+from dipole_torch.search import PolicySearch
+
+# The Pyro side, imported when first used (Pyro's import takes about a second).
+_LAZY = {
+    "DPMixtureKernel": "dipole_torch.mcmc",
+    "InverseWishart": "dipole_torch.pyro_model",
+    "dp_log_joint": "dipole_torch.pyro_model",
+    "dp_mixture_model": "dipole_torch.pyro_model",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'dipole_torch' has no attribute {name!r}")
+
 
 # The application around the library is dipole_torch.models, dipole_torch.tasks,
 # dipole_torch.configs and dipole_torch.train. A wheel installs them inside this package
@@ -31,26 +51,24 @@ if not (Path(__file__).parent / "tasks").is_dir() and (_root / "tasks" / "__init
 del _root
 
 __all__ = [
-    "DPMixture",
+    "DPMixtureKernel",
     "DPMixtureState",
+    "DPSampler",
     "Dipole",
+    "DipoleOptions",
     "GaussianMixture",
     "InverseWishart",
-    "Neal8Kernel",
     "NormalInverseWishartPrior",
     "PolicySearch",
     "Power",
     "RewardScale",
+    "SearchResult",
     "SliceChain",
-    "SliceKernel",
     "dp_log_joint",
     "dp_mixture_model",
     "draw",
-    "fit_dp_mixture",
     "importance_sets",
-    "neal8_sweep",
     "power_update",
     "reward_weights",
-    "slice_sweep",
 ]
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -1,11 +1,38 @@
-"""PoWER (Kober & Peters 2011) as used by DIPOLE: eq. 7 and the importance sets, batched over
-policies."""
+"""PoWER's step (Kober & Peters 2011; the paper's Algorithm 3), batched over policies: eq. 7
+(:func:`power_update`) on each policy's importance set.
+
+The importance sets ("select the best M points") come in two variants, one object each:
+
+* :class:`GlobalImportance` — the paper's DIPOLE and PoWER: "importance sampling is performed
+  by keeping a fixed number of elements K·M at every iteration" — the best K·M samples
+  overall; each policy then averages its own best M among them, weighted by the reward
+  weights of all kept returns.
+* :class:`PolicyImportance` — the default of :class:`~dipole_torch.Dipole`: every policy keeps
+  its own best M, weighted by the min–max of its own M returns, so a policy on an optimum as
+  good as the others' is not lost when its latest samples are a little worse than theirs.
+"""
 
 from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from dipole_torch.gaussian import DTYPE
+
+if TYPE_CHECKING:
+    from dipole_torch.search import PolicySearch
+
+__all__ = [
+    "GlobalImportance",
+    "PolicyImportance",
+    "importance_sets",
+    "make_importance",
+    "power_update",
+]
 
 
 def power_update(mean: Tensor, samples: Tensor, weights: Tensor) -> Tensor:
@@ -96,3 +123,63 @@ def _importance_sets_numpy(
     index = np.full((num_policies, size), -1, dtype=np.int64)
     index[own[chosen], rank[in_set]] = chosen
     return torch.from_numpy(keep), torch.from_numpy(index), torch.from_numpy(index >= 0)
+
+
+class PolicyImportance:
+    """Each policy keeps its own best M samples; eq. 7 weighs them by the min–max map of its
+    own M returns (best 1, worst ``reward_floor``)."""
+
+    def power_step(self, search: PolicySearch) -> None:
+        """Eq. 7 for every active policy on its importance set; the other samples policies
+        own are dropped (samples of no policy, the scouts, are kept)."""
+        archive, policies = search.archive, search.policy_set
+        owned = (archive.owner >= 0).nonzero().squeeze(-1)
+        keep, index, valid = importance_sets(
+            archive.owner[owned], archive.rewards[owned], search.num_policies, search.M
+        )
+        index = owned[index.clamp_min(0)]  # slots -> rows of the kept samples
+        weights = self.slot_weights(search, index, valid)
+        means = power_update(policies.means, archive.thetas[index], weights)
+        policies.means = torch.where(policies.active[:, None], means, policies.means)
+        mask = archive.owner < 0
+        mask[owned[keep]] = True
+        archive.keep(mask)
+
+    def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
+        """``[K, M]`` eq. 7's weights of the importance-set slots ``index`` (``valid`` marks
+        filled ones): each policy's own M returns mapped onto [floor, 1]. A policy's step then
+        depends on its own samples only, not on how bad a scout or another policy's samples
+        were (with the kept returns' range, a policy near the top has M weights ≈ 1 and its
+        mean is a plain average of its samples, which lags and can straddle two optima)."""
+        returns = search.archive.rewards[index]
+        low = torch.where(valid, returns, math.inf).amin(-1, keepdim=True)
+        high = torch.where(valid, returns, -math.inf).amax(-1, keepdim=True)
+        spread = high - low
+        tiny = torch.finfo(DTYPE).tiny
+        mapped = ((returns - low) / spread.clamp_min(tiny)).clamp(search.reward_scale.floor, 1.0)
+        # One sample, or M equal returns: equal weights.
+        weights = torch.where(spread > 0, mapped, torch.ones_like(mapped))
+        return weights * valid
+
+
+class GlobalImportance(PolicyImportance):
+    """The best K·M samples overall are kept; eq. 7 weighs each policy's best M among them by
+    the reward scale over all kept returns. A policy whose samples all fall out of the best
+    K·M owns no data at the next clustering and disappears."""
+
+    def power_step(self, search: PolicySearch) -> None:
+        archive = search.archive
+        overall = torch.zeros_like(archive.rewards, dtype=torch.bool)
+        top = min(search.num_policies * search.M, len(archive))
+        overall[torch.topk(archive.rewards, top).indices] = True
+        archive.keep(overall)
+        super().power_step(search)
+
+    def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
+        rewards = search.archive.rewards
+        return search.reward_scale.weights(rewards, reference=rewards)[index] * valid
+
+
+def make_importance(kind: str) -> PolicyImportance:
+    """``"policy"`` → :class:`PolicyImportance`, ``"global"`` → :class:`GlobalImportance`."""
+    return GlobalImportance() if kind == "global" else PolicyImportance()

@@ -8,10 +8,9 @@ import torch
 from torch import Tensor
 from torch.distributions import MultivariateNormal
 
+from dipole_torch.gaussian import DTYPE, draw_normal_precision, spd_inverse, symmetric
 from dipole_torch.sampling import _to, inverse_wishart, wishart
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
-
-DTYPE = torch.float64
 
 
 @dataclass
@@ -179,24 +178,21 @@ class NormalInverseWishartPrior:
         rhs = spread_precision @ (means - initial.mean_loc).sum(0)
         chol = torch.linalg.cholesky(precision)
         loc = initial.mean_loc + torch.cholesky_solve(rhs[:, None], chol).squeeze(-1)
-        # μ0 = loc + L⁻ᵀ z has covariance (L Lᵀ)⁻¹ = P⁻¹; z from the generator directly.
-        where = generator.device if generator is not None else loc.device
-        z = _to(torch.randn(d, 1, generator=generator, dtype=loc.dtype, device=where), loc.device)
-        mean_loc = loc + torch.linalg.solve_triangular(chol.T, z, upper=True).squeeze(-1)
+        mean_loc = draw_normal_precision(loc, chol, generator)
         # Σ0 | μ0, {μ_k} (terms of the initial prior alone are memoised on it: the same at
         # every sweep of a run)
         centred = means - mean_loc
         scale_s = initial._memo("twice_mean", "mean_covariance", lambda m: 2.0 * m) + (
             centred.T @ centred
         )
-        mean_covariance = self.sample_inverse_wishart(d + 3 + k, _symmetric(scale_s), generator)
+        mean_covariance = self.sample_inverse_wishart(d + 3 + k, symmetric(scale_s), generator)
         # Ψ0 | {Σ_k}
         hyper_df = d + 1.0
         hyper_scale_precision = initial._memo(
             "hyper_precision", "scale", lambda _: hyper_df * initial._scale_inverse()
         )
-        posterior_precision = hyper_scale_precision + _inverse(covariances).sum(0)
-        posterior_scale_tril = torch.linalg.cholesky(_inverse(_symmetric(posterior_precision)))
+        posterior_precision = hyper_scale_precision + spd_inverse(covariances).sum(0)
+        posterior_scale_tril = torch.linalg.cholesky(spd_inverse(symmetric(posterior_precision)))
         scale = wishart(hyper_df + k * self.df, posterior_scale_tril, generator)
         # Built from draws that are positive definite by construction: the validation of
         # __post_init__ (a few Cholesky factorisations) would run once per sweep for nothing.
@@ -238,9 +234,10 @@ class NormalInverseWishartPrior:
         )
 
     def _mean_covariance_inverse(self) -> Tensor:
-        """``[D, D]`` Σ0⁻¹ symmetrised, as :func:`_inverse` computes it (memoised)."""
+        """``[D, D]`` Σ0⁻¹ symmetrised, as :func:`~dipole_torch.gaussian.spd_inverse` computes
+        it (memoised)."""
         return self._memo(
-            "mean_inverse", "mean_covariance", lambda _: _symmetric(self._mean_precision())
+            "mean_inverse", "mean_covariance", lambda _: symmetric(self._mean_precision())
         )
 
     def _scale_tril(self) -> Tensor:
@@ -248,11 +245,12 @@ class NormalInverseWishartPrior:
         return self._memo("scale_tril", "scale", torch.linalg.cholesky)
 
     def _scale_inverse(self) -> Tensor:
-        """``[D, D]`` Ψ0⁻¹ symmetrised, as :func:`_inverse` computes it (memoised)."""
+        """``[D, D]`` Ψ0⁻¹ symmetrised, as :func:`~dipole_torch.gaussian.spd_inverse` computes
+        it (memoised)."""
         return self._memo(
             "scale_inverse",
             "scale",
-            lambda _: _symmetric(torch.cholesky_inverse(self._scale_tril())),
+            lambda _: symmetric(torch.cholesky_inverse(self._scale_tril())),
         )
 
     def state_dict(self) -> dict[str, Tensor | float]:
@@ -267,12 +265,3 @@ class NormalInverseWishartPrior:
     @classmethod
     def from_state_dict(cls, state: dict) -> NormalInverseWishartPrior:
         return cls(**state)
-
-
-def _symmetric(matrix: Tensor) -> Tensor:
-    return 0.5 * (matrix + matrix.transpose(-1, -2))
-
-
-def _inverse(matrix: Tensor) -> Tensor:
-    """Inverse of symmetric positive-definite ``matrix: [..., D, D]`` via Cholesky."""
-    return _symmetric(torch.cholesky_inverse(torch.linalg.cholesky(matrix)))

@@ -1,7 +1,7 @@
 """The generative model behind the DP mixture, written as a Pyro model.
 
-Neal's Algorithm 8 (:func:`dipole_torch.neal8_sweep`, with ``reward_weighted=False`` and H
-held fixed) is a Gibbs sampler for the posterior of this model:
+Neal's Algorithm 8 (:class:`dipole_torch.DPSampler` with ``reward_weighted=False`` and
+``update_prior=False``) is a Gibbs sampler for the posterior of this model:
 
 * labels c_1..c_N from the Chinese restaurant process with concentration α: c_1 = 0 and
   c_i | c_<i takes an existing table k with probability n_k / (i − 1 + α) or opens table K
@@ -34,7 +34,7 @@ from pyro.distributions import Categorical, MultivariateNormal, TorchDistributio
 from torch import Tensor
 from torch.distributions import Wishart, constraints
 
-from dipole_torch.dp_mixture import DPMixtureState
+from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.sampling import draw
 

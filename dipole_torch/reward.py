@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor
 
 from dipole_torch.validation import check_finite
+
+RewardRange = tuple[float, float] | str | None
 
 
 class RewardScale:
@@ -137,15 +142,52 @@ class RewardScale:
         return float(high - low)
 
 
-def check_rewards(rewards: Tensor, batch: int) -> Tensor:
-    """Validate ``rewards: [B]`` against the batch size; return them as float64."""
+def check_rewards(rewards, batch: int, each: str = "asked θ") -> Tensor:
+    """Validate ``rewards: [B]`` (a tensor, an array or a list of numbers) against the batch
+    size (one per ``each``); return them as float64, detached from any autograd graph."""
     if not isinstance(rewards, Tensor):
-        rewards = torch.as_tensor(rewards)
+        try:
+            rewards = torch.as_tensor(rewards)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(
+                f"rewards must be a tensor, an array or a list of numbers, got {rewards!r}"
+            ) from None
     if rewards.shape != (batch,):
         raise ValueError(
-            f"rewards must have shape [{batch}] (one per asked θ), got {list(rewards.shape)}"
+            f"rewards must have shape [{batch}] (one per {each}), got {list(rewards.shape)}"
         )
     if rewards.dtype == torch.bool or not (rewards.is_floating_point() or rewards.dtype.is_signed):
         raise ValueError(f"rewards must be real numbers, got dtype {rewards.dtype}")
+    if rewards.device.type == "meta":
+        raise ValueError("rewards is a meta tensor (no values)")
     check_finite(rewards, "rewards")
-    return rewards.to(torch.float64)
+    return rewards.detach().to(torch.float64)
+
+
+def check_reward_range(reward_range, name: str = "reward_range") -> None:
+    """Raise ``ValueError`` unless ``reward_range`` is ``None``, ``"positive"`` or a pair
+    ``(low, high)`` of finite numbers with high > low."""
+    if reward_range is None or reward_range == "positive":
+        return
+    message = f"{name} must be None, (low, high) or 'positive', got {reward_range!r}"
+    if isinstance(reward_range, str) or not isinstance(reward_range, Sequence):
+        raise ValueError(message)
+    if len(reward_range) != 2 or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in reward_range
+    ):
+        raise ValueError(message)
+    low, high = (float(v) for v in reward_range)
+    if not (math.isfinite(low) and math.isfinite(high) and high > low):
+        raise ValueError(f"{name} must be finite with high > low, got ({low}, {high})")
+
+
+def make_reward_scale(reward_range: RewardRange, floor: float) -> RewardScale:
+    """The :class:`RewardScale` of ``reward_range``: ``None``, adaptive (the kept returns'
+    min–max); ``(low, high)``, fixed; ``"positive"``, positive returns used as they are."""
+    check_reward_range(reward_range)
+    if reward_range is None:
+        return RewardScale(floor=floor)
+    if reward_range == "positive":
+        return RewardScale(floor=floor, positive=True)
+    low, high = reward_range
+    return RewardScale(low, high, floor)

@@ -246,6 +246,13 @@ def _bartlett_indices(
     return rows * dim + cols, diagonal * (dim + 1), torch.arange(dim, dtype=dtype, device=where)
 
 
+def uniforms(n: int, generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
+    """``[n]`` float64 U(0, 1) draws from ``generator`` (on its own device), moved to
+    ``device``: a sweep's label draws pre-drawn in one call."""
+    where = generator.device if generator is not None else device
+    return _to(torch.rand(n, generator=generator, dtype=torch.float64, device=where), device)
+
+
 def _expand(tensor: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     """``tensor.expand(shape)``, without the dispatch when it has that shape already."""
     return tensor if tuple(tensor.shape) == tuple(shape) else tensor.expand(shape)

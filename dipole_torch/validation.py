@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -85,3 +86,21 @@ def check_generator(generator, name: str = "generator") -> None:
     device: the library draws its seeds on the generator's own device)."""
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"{name} must be a torch.Generator or None, got {type(generator).__name__}")
+
+
+def check_choice(value, choices: tuple, name: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is one of ``choices`` (compared by equality, so
+    a bool or a number never matches a string choice)."""
+    if not any(type(value) is type(choice) and value == choice for choice in choices):
+        listed = [repr(choice) for choice in choices]
+        alternatives = (
+            listed[0] if len(listed) == 1 else f"{', '.join(listed[:-1])} or {listed[-1]}"
+        )
+        raise ValueError(f"{name} must be {alternatives}, got {value!r}")
+
+
+def check_flag(value, name: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is a bool (``"no"`` or ``0`` is refused, not
+    taken as a truth value)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be True or False, got {value!r}")

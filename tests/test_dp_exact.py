@@ -20,14 +20,9 @@ import pytest
 import torch
 from scipy import integrate
 
-from dipole_torch import (
-    DPMixture,
-    DPMixtureState,
-    NormalInverseWishartPrior,
-    dp_mixture,
-    neal8_sweep,
-)
-from dipole_torch.slice_sampler import SliceChain, slice_sweep
+from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
+from dipole_torch.dp import conditionals
+from dipole_torch.dp.slice import SliceChain
 
 F64 = torch.float64
 
@@ -108,13 +103,15 @@ def fixed_prior(reg, psi0=PSI0):
 def gibbs_partitions(reg, psi0, sweeps, burn_in, seed, reuse=False):
     """``[sweeps]`` partition index after every sweep of a chain with H fixed."""
     y = torch.tensor(Y, dtype=F64)[:, None]
-    state = DPMixtureState.single_component(y, fixed_prior(reg, psi0))
+    prior = fixed_prior(reg, psi0)
+    state = DPMixtureState.single_component(y, prior)
+    sampler = DPSampler(
+        prior, ALPHA, M, update_prior=False, auxiliary="reuse" if reuse else "fresh"
+    )
     g = torch.Generator().manual_seed(seed)
     labels = []
     for i in range(burn_in + sweeps):
-        state = neal8_sweep(
-            y, state, ALPHA, M, generator=g, update_prior=False, reuse_auxiliary=reuse
-        )
+        state = sampler.sweep(y, state, g)
         if i >= burn_in:
             labels.append(state.labels)
     return partition_index(torch.stack(labels))
@@ -180,11 +177,13 @@ def test_slice_sampler_matches_the_exact_partition_posterior(reg, psi0):
     sweeps = 3000
     exact = exact_partition_probabilities(Y, MU0, S0_SQ, NU0, psi0, reg, ALPHA)
     y = torch.tensor(Y, dtype=F64)[:, None]
-    chain = SliceChain.from_state(DPMixtureState.single_component(y, fixed_prior(reg, psi0)))
+    prior = fixed_prior(reg, psi0)
+    chain = SliceChain.from_state(DPMixtureState.single_component(y, prior))
+    sampler = DPSampler(prior, ALPHA, update_prior=False, method="slice")
     g = torch.Generator().manual_seed(1)
     labels = []
     for i in range(100 + sweeps):
-        chain = slice_sweep(y, chain, ALPHA, g, update_prior=False)
+        chain = sampler.sweep(y, chain, g)
         if i >= 100:
             labels.append(chain.labels)
     frequency = torch.bincount(partition_index(torch.stack(labels)), minlength=5)
@@ -201,7 +200,7 @@ def test_covariance_step_without_regularisation_is_the_gibbs_draw():
     scatter = torch.tensor([0.1, 2.0, 30.0], dtype=F64)[:, None, None]
     covs = torch.tensor([0.01, 1.0, 100.0], dtype=F64)[:, None, None]
     g = torch.Generator().manual_seed(0)
-    new, accepted = dp_mixture._covariance_step(prior, covs, counts, scatter, g)
+    new, accepted = conditionals.covariance_step(prior, covs, counts, scatter, g)
     assert accepted.all()
     g = torch.Generator().manual_seed(0)
     plain = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, g)
@@ -219,9 +218,9 @@ def test_regularisation_log_weight_matches_the_densities():
     means = torch.randn(2, d, generator=g, dtype=F64)
     y = torch.randn(7, d, generator=g, dtype=F64)
     labels = torch.tensor([0, 1, 1, 0, 1, 1, 1])
-    scatter = dp_mixture._scatter(y, labels, means)
+    scatter = conditionals.scatter_matrices(y, labels, means)
     counts = torch.bincount(labels).to(F64)
-    weight = dp_mixture._regularisation_log_weight(covs, reg, counts, scatter)
+    weight = conditionals._regularisation_log_weight(covs, reg, counts, scatter)
 
     def log_lik(c):
         dist = torch.distributions.MultivariateNormal(means[labels], c[labels])
@@ -230,16 +229,16 @@ def test_regularisation_log_weight_matches_the_densities():
     torch.testing.assert_close(weight, log_lik(covs + reg) - log_lik(covs))
     outside = covs.clone()
     outside[1] = -torch.eye(d, dtype=F64)
-    weight = dp_mixture._regularisation_log_weight(outside, reg, counts, scatter)
+    weight = conditionals._regularisation_log_weight(outside, reg, counts, scatter)
     assert weight[1] == -math.inf and torch.isfinite(weight[0])
     prior = NormalInverseWishartPrior(
         torch.zeros(d, dtype=F64), covs[0], float(d + 3), 2.0 * covs[0], reg
     )
-    new, accepted = dp_mixture._covariance_step(prior, outside + reg, counts, scatter, g)
+    new, accepted = conditionals.covariance_step(prior, outside + reg, counts, scatter, g)
     assert accepted[1]
     # Without the correction (exact=False): the conjugate draw + R, always.
     state = g.get_state()
-    new, accepted = dp_mixture._covariance_step(prior, covs + reg, counts, scatter, g, exact=False)
+    new, accepted = conditionals.covariance_step(prior, covs + reg, counts, scatter, g, exact=False)
     g.set_state(state)
     plain = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, g)
     assert accepted.all() and torch.equal(new, plain + reg)
@@ -249,6 +248,6 @@ def test_fixed_prior_stays_fixed():
     y = torch.randn(20, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
     prior = NormalInverseWishartPrior.from_exploration(y.mean(0), torch.cov(y.T))
     g = torch.Generator().manual_seed(1)
-    assert DPMixture(prior).fit(y, num_sweeps=3, generator=g).prior is prior
-    moved = DPMixture(prior, update_prior=True).fit(y, num_sweeps=3, generator=g).prior
+    assert DPSampler(prior, update_prior=False).fit(y, num_sweeps=3, generator=g).prior is prior
+    moved = DPSampler(prior, update_prior=True).fit(y, num_sweeps=3, generator=g).prior
     assert not torch.equal(moved.scale, prior.scale)

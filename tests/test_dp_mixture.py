@@ -6,14 +6,10 @@ import pytest
 import torch
 from sklearn.metrics import adjusted_rand_score
 
-from dipole_torch import (
-    DPMixtureState,
-    NormalInverseWishartPrior,
-    dp_mixture,
-    fit_dp_mixture,
-    neal8_sweep,
-)
-from dipole_torch.dp_mixture import posterior_point_estimate
+from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
+from dipole_torch.dp import labels as dp_labels
+from dipole_torch.dp import neal8, posterior_point_estimate, reward_weights
+from dipole_torch.gaussian import log_prob_tril
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.sampling import draw_categorical
 
@@ -67,7 +63,7 @@ def test_recovers_well_separated_clusters(d, k, seed):
     g = torch.Generator().manual_seed(seed)
     true = torch.arange(k).repeat_interleave(240 // k)
     y = separated_centres(k, d, g)[true] + torch.randn(len(true), d, generator=g, dtype=F64)
-    state = fit_dp_mixture(y, clustering_prior(y), num_sweeps=15, generator=g, init="sequential")
+    state = DPSampler(clustering_prior(y)).fit(y, num_sweeps=15, generator=g, init="sequential")
     # The DP posterior keeps a few stray points of a cluster's tail in tiny clusters; the
     # clusters that matter each hold >= 5 % of the data.
     substantial = int((state.counts >= 0.05 * len(y)).sum())
@@ -82,7 +78,7 @@ def test_algorithm1_start_splits_a_single_component(seed):
     g = torch.Generator().manual_seed(seed)
     true = torch.arange(3).repeat_interleave(60)
     y = separated_centres(3, 2, g)[true] + torch.randn(180, 2, generator=g, dtype=F64)
-    state = fit_dp_mixture(y, clustering_prior(y), num_sweeps=25, generator=g, init="single")
+    state = DPSampler(clustering_prior(y)).fit(y, num_sweeps=25, generator=g, init="single")
     assert int((state.counts >= 9).sum()) == 3
     assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
 
@@ -94,7 +90,7 @@ def test_single_blob_stays_one_cluster(d):
     prior = NormalInverseWishartPrior.from_exploration(
         torch.zeros(d, dtype=F64), torch.eye(d, dtype=F64), df=d + 6
     )
-    state = fit_dp_mixture(y, prior, num_sweeps=15, generator=g, init="sequential")
+    state = DPSampler(prior).fit(y, num_sweeps=15, generator=g, init="sequential")
     assert int(state.counts.max()) >= 0.95 * 200
 
 
@@ -117,7 +113,7 @@ def test_eq6_reward_weights_scale_label_probabilities():
         hits = 0
         g = torch.Generator().manual_seed(0)
         for _ in range(200):
-            out = neal8_sweep(y, state, alpha=1e-12, m=1, reward_weighted=weighted, generator=g)
+            out = DPSampler(prior, alpha=1e-12, m=1, reward_weighted=weighted).sweep(y, state, g)
             hits += int(out.labels[-1] == out.labels[0])
         return hits / 200
 
@@ -129,8 +125,8 @@ def test_eq6_reward_weights_scale_label_probabilities():
 def test_sweep_is_reproducible_from_the_generator():
     y = torch.randn(50, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
     prior = clustering_prior(y)
-    a = fit_dp_mixture(y, prior, 3, generator=torch.Generator().manual_seed(7))
-    b = fit_dp_mixture(y, prior, 3, generator=torch.Generator().manual_seed(7))
+    a = DPSampler(prior).fit(y, 3, generator=torch.Generator().manual_seed(7))
+    b = DPSampler(prior).fit(y, 3, generator=torch.Generator().manual_seed(7))
     assert torch.equal(a.labels, b.labels) and torch.equal(a.means, b.means)
 
 
@@ -139,7 +135,7 @@ def test_global_rng_is_untouched():
     torch.manual_seed(123)
     expected = torch.rand(3)
     torch.manual_seed(123)
-    fit_dp_mixture(y, clustering_prior(y), 2, generator=torch.Generator().manual_seed(1))
+    DPSampler(clustering_prior(y)).fit(y, 2, generator=torch.Generator().manual_seed(1))
     assert torch.equal(torch.rand(3), expected)
 
 
@@ -147,13 +143,13 @@ def test_bad_inputs_are_rejected():
     y = torch.randn(10, 2, dtype=F64)
     prior = clustering_prior(y)
     with pytest.raises(ValueError, match="y must have shape"):
-        fit_dp_mixture(torch.randn(10, 3, dtype=F64), prior)
+        DPSampler(prior).fit(torch.randn(10, 3, dtype=F64))
     bad = y.clone()
     bad[3, 1] = float("nan")
     with pytest.raises(ValueError, match="y contains non-finite"):
-        fit_dp_mixture(bad, prior)
+        DPSampler(prior).fit(bad)
     with pytest.raises(ValueError, match="alpha"):
-        fit_dp_mixture(y, prior, alpha=0.0)
+        DPSampler(prior, alpha=0.0)
     with pytest.raises(ValueError, match="positive definite"):
         NormalInverseWishartPrior.from_exploration(torch.zeros(2), -torch.eye(2))
     with pytest.raises(ValueError, match="df must exceed"):
@@ -181,15 +177,16 @@ def test_eq6_r_c_stays_within_the_data_reward_range(monkeypatch):
     g = torch.Generator().manual_seed(0)
     y = reward_task(g)
     recorded = []
-    original = dp_mixture.reward_weights
+    original = neal8.reward_weights
 
     def spy(*args, **kwargs):
         out = original(*args, **kwargs)
         recorded.append(out)
         return out
 
-    monkeypatch.setattr(dp_mixture, "reward_weights", spy)
-    fit_dp_mixture(y, reward_prior(y), num_sweeps=3, reward_weighted=True, generator=g)
+    monkeypatch.setattr(neal8, "reward_weights", spy)  # the components' r_c
+    monkeypatch.setattr(dp_labels, "reward_weights", spy)  # the auxiliary ones'
+    DPSampler(reward_prior(y), reward_weighted=True).fit(y, num_sweeps=3, generator=g)
     r_c = torch.cat([r.flatten() for r in recorded]).exp()
     w = y[:, -1]
     assert len(recorded) >= 6 and r_c.numel() > 60
@@ -224,7 +221,7 @@ def test_eq6_r_c_is_relative_to_the_reward_scale():
     g = torch.Generator().manual_seed(1)
     y = reward_task(g)
     prior = reward_prior(y)
-    state = fit_dp_mixture(y, prior, num_sweeps=3, reward_weighted=True, generator=g)
+    state = DPSampler(prior, reward_weighted=True).fit(y, num_sweeps=3, generator=g)
     queries = prior.sample(50, g)[0]
     factor = 1e-7
     s, outer = reward_scaling(y.shape[1], factor)
@@ -234,8 +231,8 @@ def test_eq6_r_c_is_relative_to_the_reward_scale():
     )
     for w in (None, y[:, -1]):
         kwargs, kwargs_s = ({}, {}) if w is None else ({"weights": w}, {"weights": w * factor})
-        log_r = dp_mixture.reward_weights(mixture, queries, **kwargs)
-        log_r_s = dp_mixture.reward_weights(mixture_s, queries * s, **kwargs_s)
+        log_r = reward_weights(mixture, queries, **kwargs)
+        log_r_s = reward_weights(mixture_s, queries * s, **kwargs_s)
         torch.testing.assert_close(log_r_s - log_r, torch.full_like(log_r, math.log(factor)))
 
 
@@ -257,7 +254,7 @@ def test_eq6_chain_is_invariant_to_the_reward_scale():
 
     def fit(y, prior, weighted):
         g = torch.Generator().manual_seed(3)
-        return fit_dp_mixture(y, prior, 8, reward_weighted=weighted, generator=g, init="sequential")
+        return DPSampler(prior, reward_weighted=weighted).fit(y, 8, g, init="sequential")
 
     a, b = fit(y, prior, True), fit(y_s, prior_s, True)
     assert not torch.equal(a.labels, fit(y, prior, False).labels)  # eq. 6 matters here
@@ -301,10 +298,8 @@ def test_large_offsets_keep_the_partition():
     y, prior, true = offset_task(0.0, torch.Generator().manual_seed(5))
     y_far, prior_far, _ = offset_task(1e6, torch.Generator().manual_seed(5))
     for init in ("single", "sequential"):
-        a = fit_dp_mixture(y, prior, 10, generator=torch.Generator().manual_seed(6), init=init)
-        b = fit_dp_mixture(
-            y_far, prior_far, 10, generator=torch.Generator().manual_seed(6), init=init
-        )
+        a = DPSampler(prior).fit(y, 10, torch.Generator().manual_seed(6), init=init)
+        b = DPSampler(prior_far).fit(y_far, 10, torch.Generator().manual_seed(6), init=init)
         assert torch.equal(a.labels, b.labels)
         torch.testing.assert_close(b.means - 1e6, a.means, rtol=0, atol=1e-8)
         torch.testing.assert_close(b.covariances, a.covariances, rtol=1e-5, atol=0)
@@ -327,8 +322,8 @@ def label_pass_inputs(chunk_bytes, monkeypatch):
     true = torch.arange(3).repeat_interleave(20)
     y = separated_centres(3, 2, g)[true] + torch.randn(60, 2, generator=g, dtype=F64)
     y = torch.cat((y, 0.2 + torch.rand(60, 1, generator=g, dtype=F64)), 1)  # reward weights
-    monkeypatch.setattr(dp_mixture, "_AUX_CHUNK_BYTES", chunk_bytes)
-    assert dp_mixture._chunk_size(60, 10, 3) == 8
+    monkeypatch.setattr(neal8, "AUX_CHUNK_BYTES", chunk_bytes)
+    assert neal8.chunk_size(60, 10, 3) == 8
     return y, DPMixtureState.single_component(y, clustering_prior(y))
 
 
@@ -340,17 +335,18 @@ def test_sync_free_label_pass_makes_the_numpy_pass_draws(weighted, monkeypatch):
     y, state = label_pass_inputs(8 * 2 * 8 * 10 * 9, monkeypatch)
 
     def chain(label_pass):
-        monkeypatch.setattr(dp_mixture, "_label_pass_numpy", label_pass)
+        monkeypatch.setattr(neal8, "label_pass_numpy", label_pass)
         g = torch.Generator().manual_seed(3)
+        sampler = DPSampler(state.prior, reward_weighted=weighted, update_prior=False)
         s, ks = state, []
         for _ in range(6):
-            s = neal8_sweep(y, s, reward_weighted=weighted, generator=g, update_prior=False)
+            s = sampler.sweep(y, s, g)
             ks.append(s.num_components)
         return s, ks
 
-    numpy_pass = dp_mixture._label_pass_numpy
+    numpy_pass = neal8.label_pass_numpy
     a, ks = chain(numpy_pass)
-    b, _ = chain(dp_mixture._label_pass_sync_free)
+    b, _ = chain(neal8.label_pass_sync_free)
     assert max(ks) >= 3  # components were opened
     assert torch.equal(a.labels, b.labels)
     torch.testing.assert_close(a.means, b.means)
@@ -360,7 +356,7 @@ def test_sync_free_label_pass_makes_the_numpy_pass_draws(weighted, monkeypatch):
 def test_auxiliary_draws_are_chunked(monkeypatch):
     # At N = 1e4, p = 51, m = 10 all auxiliary covariances at once took 2.1 GB; a chunk's
     # covariances and their Cholesky factors stay within 64 MB.
-    chunk = dp_mixture._chunk_size(10_000, 10, 51)
+    chunk = neal8.chunk_size(10_000, 10, 51)
     assert 2 * chunk * 10 * 51 * 51 * 8 <= 2**26 and chunk >= 100
     y, state = label_pass_inputs(8 * 2 * 8 * 10 * 9, monkeypatch)
     sizes = []
@@ -371,7 +367,7 @@ def test_auxiliary_draws_are_chunked(monkeypatch):
         return original(self, n, *args, **kwargs)
 
     monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
-    neal8_sweep(y, state, generator=torch.Generator().manual_seed(0), update_prior=False)
+    DPSampler(state.prior, update_prior=False).sweep(y, state, torch.Generator().manual_seed(0))
     assert sizes == [80] * 7 + [40]  # 8 points · m = 10 per chunk, 60 points
 
 
@@ -391,7 +387,7 @@ def test_cuda_label_loop_never_syncs_within_a_chunk(monkeypatch):
             }
         ),
     )
-    step = dp_mixture._sync_free_step
+    step = neal8._sync_free_step
 
     def strict(*args):
         torch.cuda.set_sync_debug_mode("error")
@@ -400,9 +396,10 @@ def test_cuda_label_loop_never_syncs_within_a_chunk(monkeypatch):
         finally:
             torch.cuda.set_sync_debug_mode("default")
 
-    monkeypatch.setattr(dp_mixture, "_sync_free_step", strict)
+    monkeypatch.setattr(neal8, "_sync_free_step", strict)
     g = torch.Generator(device="cuda").manual_seed(0)
-    out = neal8_sweep(y, state, reward_weighted=True, generator=g, update_prior=False)
+    sampler = DPSampler(state.prior, reward_weighted=True, update_prior=False)
+    out = sampler.sweep(y, state, g)
     assert out.labels.device.type == "cuda" and int(out.counts.sum()) == 60
 
 
@@ -423,11 +420,10 @@ def test_reuse_draws_m_auxiliary_components_a_sweep_and_recovers_clusters(monkey
     prior = clustering_prior(y)
     state = DPMixtureState.single_component(y, prior)
     monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
-    state = neal8_sweep(y, state, generator=g, update_prior=False, reuse_auxiliary=True)
+    reuse = DPSampler(prior, update_prior=False, auxiliary="reuse")
+    state = reuse.sweep(y, state, g)
     assert sizes[0] == 10 and set(sizes[1:]) <= {1} and len(sizes) < 240
-    state = fit_dp_mixture(
-        y, prior, 15, generator=g, init="sequential", update_prior=False, reuse_auxiliary=True
-    )
+    state = reuse.fit(y, 15, generator=g, init="sequential")
     assert int((state.counts >= 0.05 * len(y)).sum()) == 3
     assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
 
@@ -450,4 +446,4 @@ def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
     v = torch.randn(value, generator=g, dtype=F64)
     mu = torch.randn(mean, generator=g, dtype=F64)
     expected = torch.distributions.MultivariateNormal(mu, scale_tril=tril).log_prob(v)
-    torch.testing.assert_close(dp_mixture._log_prob_tril(v, mu, tril), expected)
+    torch.testing.assert_close(log_prob_tril(v, mu, tril), expected)

@@ -92,7 +92,7 @@ def test_importance_sets_odd_inputs_take_the_torch_path():
 
 def test_memos_under_inference_mode():
     """Inference tensors have no version counter: the memos step aside, same numbers."""
-    from dipole_torch import fit_dp_mixture
+    from dipole_torch import DPSampler
 
     y = torch.randn(12, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
     y[:, -1] = y[:, -1].abs() + 0.1
@@ -100,7 +100,7 @@ def test_memos_under_inference_mode():
     def fit():
         prior = NormalInverseWishartPrior.from_exploration(y.mean(0), torch.cov(y.T))
         g = torch.Generator().manual_seed(1)
-        return fit_dp_mixture(y, prior, 3, reward_weighted=True, generator=g)
+        return DPSampler(prior, reward_weighted=True).fit(y, 3, generator=g)
 
     plain = fit()
     with torch.inference_mode():

@@ -33,14 +33,13 @@ def started() -> Dipole:
 def set_policies(opt: Dipole, means, stds, active, samples) -> None:
     """Replace the policies: one kept sample each (``samples``), scouts and queues emptied."""
     k = len(means)
-    opt.policy_means = torch.tensor(means, dtype=DTYPE)[:, None]
-    opt.policy_covariances = torch.tensor(stds, dtype=DTYPE).square()[:, None, None]
-    opt.active = torch.tensor(active)
-    opt.success = torch.full((k,), Dipole.TARGET_SUCCESS, dtype=DTYPE)
-    opt.paths = torch.zeros(k, 1, dtype=DTYPE)
-    opt.thetas = torch.tensor(samples, dtype=DTYPE)[:, None]
-    opt.rewards = equal_maxima(opt.thetas)
-    opt.owner = torch.arange(k)
+    opt.policy_set.reset(
+        torch.tensor(means, dtype=DTYPE)[:, None],
+        torch.tensor(stds, dtype=DTYPE).square()[:, None, None],
+    )
+    opt.policy_set.active = torch.tensor(active)
+    thetas = torch.tensor(samples, dtype=DTYPE)[:, None]
+    opt.archive.replace(thetas, equal_maxima(thetas), torch.arange(k))
 
 
 def test_a_wide_new_policy_does_not_drop_the_converged_ones_it_covers():
@@ -56,7 +55,7 @@ def test_a_wide_new_policy_does_not_drop_the_converged_ones_it_covers():
         active=[False, False, False, True],
         samples=[0.3001, 0.5001, 0.7001, 0.70001],
     )
-    opt._retire_and_merge()
+    opt.retirement.retire_and_merge(opt)
     assert opt.policy_means[:, 0].tolist() == [0.3, 0.5, 0.7, 0.62]
 
 
@@ -71,19 +70,23 @@ def test_a_narrow_policy_still_replaces_the_retired_one_it_improves_on():
         active=[False, False, True],
         samples=[0.3001, 0.7002, 0.70001],
     )
-    opt._retire_and_merge()
+    opt.retirement.retire_and_merge(opt)
     assert opt.policy_means[:, 0].tolist() == [0.3, 0.7]
     assert opt.active.tolist() == [False, True]
 
 
 def queue_candidate(opt: Dipole, mean, std, sample, partner) -> None:
-    opt.candidate_means = torch.tensor([[mean]], dtype=DTYPE)
-    opt.candidate_covariances = torch.tensor([[[std**2]]], dtype=DTYPE)
-    opt.candidate_samples = torch.tensor([[sample]], dtype=DTYPE)
-    opt.candidate_rewards = equal_maxima(opt.candidate_samples)
-    opt._probe_candidates()
-    assert opt.candidate_partners.tolist() == [partner]
-    opt.probe_rewards = equal_maxima(opt.candidate_probes)
+    samples = torch.tensor([[sample]], dtype=DTYPE)
+    vetting = opt.vetting
+    vetting.add_candidates(
+        torch.tensor([[mean]], dtype=DTYPE),
+        torch.tensor([[[std**2]]], dtype=DTYPE),
+        samples,
+        equal_maxima(samples),
+    )
+    vetting._probe_candidates(opt)
+    assert vetting.candidate_partners.tolist() == [partner]
+    vetting.probe_rewards = equal_maxima(vetting.candidate_probes)
 
 
 def test_a_replacement_starts_from_its_refuting_sample():
@@ -93,7 +96,7 @@ def test_a_replacement_starts_from_its_refuting_sample():
     opt = started()
     set_policies(opt, [0.3, 0.7003], [2e-4, 2e-4], [False, False], [0.3001, 0.7003])
     queue_candidate(opt, mean=0.7147, std=0.227, sample=0.70001, partner=1)
-    opt._judge_candidates()
+    opt.vetting.judge(opt)
     assert opt.policy_means[:, 0].tolist() == [0.3, 0.70001]
     # Half the gap, but no narrower than the policy it replaces (std 2e-4).
     half_gap = 0.5 * abs(0.7003 - 0.70001)
@@ -105,7 +108,7 @@ def test_a_new_hill_starts_within_half_the_gap_to_its_partner():
     opt = started()
     set_policies(opt, [0.3], [2e-4], [False], [0.3001])
     queue_candidate(opt, mean=0.52, std=0.2, sample=0.49, partner=0)
-    opt._judge_candidates()  # the midpoint 0.395 lies in the valley: a new policy
+    opt.vetting.judge(opt)  # the midpoint 0.395 lies in the valley: a new policy
     assert opt.policy_means[:, 0].tolist() == [0.3, 0.52]
     std = float(opt.policy_covariances[1, 0, 0].sqrt())
     assert std == pytest.approx(0.5 * (0.49 - 0.3001), rel=1e-9)

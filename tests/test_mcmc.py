@@ -1,12 +1,12 @@
-"""Neal's Algorithm 8 and the slice sampler as Pyro MCMC kernels: run by pyro.infer.MCMC, same
-chains as the sweeps."""
+"""The DP sampler (Algorithm 8, the slice sampler) as a Pyro MCMC kernel: run by
+pyro.infer.MCMC, the same chains as the sampler's own sweeps."""
 
 import pytest
 import torch
 from pyro.infer import MCMC
 
-from dipole_torch import NormalInverseWishartPrior, fit_dp_mixture
-from dipole_torch.mcmc import Neal8Kernel, SliceKernel
+from dipole_torch import DPSampler, NormalInverseWishartPrior
+from dipole_torch.mcmc import DPMixtureKernel
 from dipole_torch.pyro_model import canonical_state, dp_log_joint
 
 F64 = torch.float64
@@ -24,11 +24,10 @@ def two_groups(seed=0, n=12):
 
 
 @pytest.mark.parametrize("update_prior", [False, True])
-def test_mcmc_runs_exactly_the_sweeps_of_fit_dp_mixture(update_prior, capsys):
+def test_mcmc_runs_exactly_the_sweeps_of_the_sampler(update_prior, capsys):
     y, prior = two_groups()
-    kernel = Neal8Kernel(
-        prior, alpha=1.0, m=3, update_prior=update_prior, generator=torch.Generator().manual_seed(5)
-    )
+    sampler = DPSampler(prior, alpha=1.0, m=3, update_prior=update_prior)
+    kernel = DPMixtureKernel(sampler, generator=torch.Generator().manual_seed(5))
     seen = []
     mcmc = MCMC(
         kernel,
@@ -38,15 +37,7 @@ def test_mcmc_runs_exactly_the_sweeps_of_fit_dp_mixture(update_prior, capsys):
         hook_fn=lambda kernel, params, stage, i: seen.append(kernel.state.num_components),
     )
     mcmc.run(y)
-    direct = fit_dp_mixture(
-        y,
-        prior,
-        num_sweeps=10,
-        alpha=1.0,
-        m=3,
-        generator=torch.Generator().manual_seed(5),
-        update_prior=update_prior,
-    )
+    direct = sampler.fit(y, num_sweeps=10, generator=torch.Generator().manual_seed(5))
     assert torch.equal(kernel.state.labels, direct.labels)
     assert torch.equal(kernel.state.means, direct.means)
     assert torch.equal(kernel.state.prior.scale, direct.prior.scale)
@@ -66,7 +57,8 @@ def test_mcmc_runs_exactly_the_sweeps_of_fit_dp_mixture(update_prior, capsys):
 
 def test_the_chain_separates_two_groups_and_keeps_labels_from_switching():
     y, prior = two_groups(seed=1)
-    kernel = Neal8Kernel(prior, m=3, init="sequential", generator=torch.Generator().manual_seed(0))
+    sampler = DPSampler(prior, m=3, update_prior=False)
+    kernel = DPMixtureKernel(sampler, init="sequential", generator=torch.Generator().manual_seed(0))
     mcmc = MCMC(kernel, num_samples=15, warmup_steps=5, disable_progbar=True)
     mcmc.run(y)
     labels = mcmc.get_samples()["labels"]
@@ -77,7 +69,8 @@ def test_the_chain_separates_two_groups_and_keeps_labels_from_switching():
 
 def test_initial_params_start_the_chain_from_given_labels():
     y, prior = two_groups()
-    kernel = Neal8Kernel(prior, m=3, generator=torch.Generator().manual_seed(0))
+    sampler = DPSampler(prior, m=3, update_prior=False)
+    kernel = DPMixtureKernel(sampler, generator=torch.Generator().manual_seed(0))
     labels = torch.tensor([4] * 12 + [7] * 12)
     kernel.initial_params = {"labels": labels}
     kernel.setup(0, y)
@@ -92,12 +85,14 @@ def test_initial_params_start_the_chain_from_given_labels():
 def test_bad_arguments_are_rejected():
     y, prior = two_groups()
     with pytest.raises(ValueError, match="alpha"):
-        Neal8Kernel(prior, alpha=0.0)
+        DPSampler(prior, alpha=0.0)
     with pytest.raises(ValueError, match="init"):
-        Neal8Kernel(prior, init="kmeans")
+        DPMixtureKernel(DPSampler(prior), init="kmeans")
     with pytest.raises(TypeError, match="prior"):
-        Neal8Kernel("not a prior")
-    kernel = Neal8Kernel(prior)
+        DPSampler("not a prior")
+    with pytest.raises(TypeError, match="sampler must be a DPSampler"):
+        DPMixtureKernel(prior)
+    kernel = DPMixtureKernel(DPSampler(prior))
     with pytest.raises(RuntimeError, match="setup"):
         kernel.sample({})
     with pytest.raises(ValueError, match="y must have shape"):
@@ -110,24 +105,14 @@ def test_bad_arguments_are_rejected():
 
 
 @pytest.mark.parametrize("update_prior", [False, True])
-def test_slice_kernel_runs_exactly_the_sweeps_of_fit_dp_mixture(update_prior):
+def test_slice_kernel_runs_exactly_the_sweeps_of_the_slice_sampler(update_prior):
     y, prior = two_groups(n=40)
-    kernel = SliceKernel(
-        prior,
-        update_prior=update_prior,
-        init="sequential",
-        generator=torch.Generator().manual_seed(5),
-    )
+    sampler = DPSampler(prior, update_prior=update_prior, method="slice")
+    kernel = DPMixtureKernel(sampler, init="sequential", generator=torch.Generator().manual_seed(5))
     mcmc = MCMC(kernel, num_samples=6, warmup_steps=4, disable_progbar=True)
     mcmc.run(y)
-    direct = fit_dp_mixture(
-        y,
-        prior,
-        num_sweeps=10,
-        generator=torch.Generator().manual_seed(5),
-        init="sequential",
-        update_prior=update_prior,
-        sampler="slice",
+    direct = sampler.fit(
+        y, num_sweeps=10, generator=torch.Generator().manual_seed(5), init="sequential"
     )
     assert torch.equal(kernel.state.labels, direct.labels)
     assert torch.equal(kernel.state.means, direct.means)
@@ -136,4 +121,4 @@ def test_slice_kernel_runs_exactly_the_sweeps_of_fit_dp_mixture(update_prior):
     labels = mcmc.get_samples()["labels"]
     assert labels.shape == (6, 80) and (labels[:, :40, None] != labels[:, None, 40:]).all()
     with pytest.raises(RuntimeError, match="setup"):
-        SliceKernel(prior).sample({})
+        DPMixtureKernel(DPSampler(prior, method="slice")).sample({})

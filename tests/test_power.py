@@ -1,7 +1,9 @@
 import pytest
 import torch
+from test_optimizer import started_dipole, two_optima
 
 from dipole_torch import Power, importance_sets, power_update
+from dipole_torch.power import PolicyImportance
 
 F64 = torch.float64
 
@@ -53,3 +55,20 @@ def test_power_converges_on_a_concave_quadratic(seed):
     # A fixed exploration covariance limits how close the mean gets: within 0.25 of the
     # optimum, from 2.3 away.
     assert torch.linalg.norm(opt.policy_means[0] - optimum) < 0.25 < start
+
+
+def test_each_policy_weighs_its_samples_by_its_own_returns():
+    # Per-policy importance sets take eq. 7's weights from the policy's own M returns
+    # (best 1, worst the floor): a scout's or another policy's return never moves a policy.
+    opt = started_dipole(2, two_optima)
+    weights = PolicyImportance().slot_weights
+    _, index, valid = importance_sets(opt.owner, opt.rewards, opt.num_policies, opt.M)
+    before = weights(opt, index, valid)
+    filled = valid.sum(-1) > 1
+    assert torch.allclose(before[filled, 0], torch.ones_like(before[filled, 0]))
+    assert torch.allclose(before[valid].min(), torch.tensor(opt.reward_scale.floor, dtype=F64))
+    # A far worse return elsewhere (a scout's) changes nothing.
+    opt.archive.append(
+        torch.zeros(1, 2, dtype=F64), torch.tensor([-1e9], dtype=F64), torch.tensor([-1])
+    )
+    assert torch.equal(weights(opt, index, valid), before)

@@ -17,8 +17,7 @@ import pytest
 import torch
 from scipy.stats import invwishart
 
-from dipole_torch import NormalInverseWishartPrior, fit_dp_mixture, neal8_sweep
-from dipole_torch.dp_mixture import DPMixtureState
+from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
 from dipole_torch.pyro_model import (
     InverseWishart,
     canonical_state,
@@ -77,9 +76,8 @@ def test_trace_log_joint_equals_the_closed_form_for_sampler_states(seed):
     g = torch.Generator().manual_seed(seed)
     y = torch.randn(14, 2, generator=g, dtype=F64)
     y[:7] += 4.0
-    state = fit_dp_mixture(
-        y, prior, 4, alpha=0.8, m=3, generator=g, update_prior=False, init="sequential"
-    )
+    sampler = DPSampler(prior, alpha=0.8, m=3, update_prior=False)
+    state = sampler.fit(y, 4, generator=g, init="sequential")
     assert state.num_components >= 2
     # The sampler's numbering need not be the CRP's: reverse it to be sure.
     flipped = DPMixtureState(
@@ -193,16 +191,11 @@ def _geweke_z(forward, chain, batches=20):
 
 def _sweep(alpha=GEWEKE_ALPHA, exact_covariance=True):
     def sweep(y, state, generator):
-        return neal8_sweep(
-            y,
-            state,
-            alpha,
-            m=2,
-            generator=generator,
-            inner_steps=1,
-            update_prior=False,
+        sampler = DPSampler(
+            state.prior, alpha, m=2, inner_steps=1, update_prior=False,
             exact_covariance=exact_covariance,
-        )
+        )  # fmt: skip
+        return sampler.sweep(y, state, generator)
 
     return sweep
 

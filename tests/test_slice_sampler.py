@@ -5,8 +5,8 @@ import pytest
 import torch
 from sklearn.metrics import adjusted_rand_score
 
-from dipole_torch import DPMixture, DPMixtureState, NormalInverseWishartPrior, fit_dp_mixture
-from dipole_torch.slice_sampler import SliceChain, slice_sweep
+from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
+from dipole_torch.dp import SliceChain
 
 F64 = torch.float64
 
@@ -31,7 +31,7 @@ def clusters(n: int, d: int, seed: int = 0, device: str = "cpu"):
 def test_recovers_separated_clusters(d):
     y, truth, prior = clusters(400, d)
     g = torch.Generator().manual_seed(0)
-    state = fit_dp_mixture(y, prior, 10, generator=g, init="sequential", sampler="slice")
+    state = DPSampler(prior, method="slice").fit(y, 10, generator=g, init="sequential")
     assert isinstance(state, DPMixtureState) and state.num_components == 4
     assert adjusted_rand_score(truth.numpy(), state.labels.numpy()) > 0.99
     assert torch.equal(state.labels.unique(), torch.arange(4))  # contiguous
@@ -41,20 +41,15 @@ def test_recovers_separated_clusters(d):
         assert (state.means[c] - points.mean(0)).norm() < 0.5
 
 
-def test_dp_mixture_wrapper_takes_the_sampler():
+def test_fit_runs_the_sweeps_of_the_slice_sampler_keeping_the_chain():
     y, truth, prior = clusters(400, 2, seed=1)
-    fit = DPMixture(prior, sampler="slice").fit(
-        y, 5, generator=torch.Generator().manual_seed(0), init="sequential"
-    )
-    direct = fit_dp_mixture(
-        y,
-        prior,
-        5,
-        generator=torch.Generator().manual_seed(0),
-        init="sequential",
-        update_prior=False,
-        sampler="slice",
-    )
+    sampler = DPSampler(prior, update_prior=False, method="slice")
+    fit = sampler.fit(y, 5, generator=torch.Generator().manual_seed(0), init="sequential")
+    g = torch.Generator().manual_seed(0)
+    chain = sampler.to_chain(sampler.start(y, "sequential", g))
+    for _ in range(5):
+        chain = sampler.sweep(y, chain, g)
+    direct = sampler.to_state(chain)
     assert torch.equal(fit.labels, direct.labels)
     assert adjusted_rand_score(truth.numpy(), fit.labels.numpy()) > 0.95  # tail points aside
 
@@ -62,13 +57,14 @@ def test_dp_mixture_wrapper_takes_the_sampler():
 def test_chain_keeps_stick_labels_and_is_reproducible():
     y, _, prior = clusters(200, 2)
     g = torch.Generator().manual_seed(1)
-    start = fit_dp_mixture(y, prior, 1, generator=g, init="sequential")
+    start = DPSampler(prior).fit(y, 1, generator=g, init="sequential")
+    sampler = DPSampler(prior, update_prior=False, method="slice")
     runs = []
     for _ in range(2):
         chain = SliceChain.from_state(start)
         g = torch.Generator().manual_seed(2)
         for _ in range(5):
-            chain = slice_sweep(y, chain, 1.0, g, update_prior=False)
+            chain = sampler.sweep(y, chain, g)
         runs.append(chain)
     assert torch.equal(runs[0].labels, runs[1].labels)
     chain = runs[0]
@@ -85,33 +81,35 @@ def test_chain_keeps_stick_labels_and_is_reproducible():
 def test_prior_update_moves_h():
     y, _, prior = clusters(200, 2)
     g = torch.Generator().manual_seed(3)
-    state = fit_dp_mixture(y, prior, 3, generator=g, init="sequential", sampler="slice")
+    state = DPSampler(prior, method="slice").fit(y, 3, generator=g, init="sequential")
     assert not torch.equal(state.prior.mean_loc, prior.mean_loc)
-    fixed = fit_dp_mixture(
-        y, prior, 3, generator=g, init="sequential", sampler="slice", update_prior=False
+    fixed = DPSampler(prior, update_prior=False, method="slice").fit(
+        y, 3, generator=g, init="sequential"
     )
     assert fixed.prior is prior
 
 
 def test_bad_input_is_refused():
     y, _, prior = clusters(40, 2)
-    with pytest.raises(ValueError, match="sampler must be"):
-        fit_dp_mixture(y, prior, 1, sampler="gibbs")
-    with pytest.raises(ValueError, match="reward_weighted and reuse_auxiliary"):
-        fit_dp_mixture(y, prior, 1, sampler="slice", reward_weighted=True)
-    with pytest.raises(ValueError, match="reward_weighted and reuse_auxiliary"):
-        fit_dp_mixture(y, prior, 1, sampler="slice", reuse_auxiliary=True)
+    with pytest.raises(ValueError, match="method must be"):
+        DPSampler(prior, method="gibbs")
+    with pytest.raises(ValueError, match="reward_weighted must be False and auxiliary 'fresh'"):
+        DPSampler(prior, method="slice", reward_weighted=True)
+    with pytest.raises(ValueError, match="reward_weighted must be False and auxiliary 'fresh'"):
+        DPSampler(prior, method="slice", auxiliary="reuse")
     chain = SliceChain.from_state(DPMixtureState.single_component(y, prior))
     with pytest.raises(ValueError, match="alpha"):
-        slice_sweep(y, chain, alpha=0.0)
+        DPSampler(prior, alpha=0.0, method="slice")
     with pytest.raises(ValueError, match="sticks"):  # rather than a loop without end
-        slice_sweep(y, chain, alpha=1e9, generator=torch.Generator().manual_seed(0))
+        DPSampler(prior, alpha=1e9, method="slice").sweep(
+            y, chain, torch.Generator().manual_seed(0)
+        )
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_runs_on_cuda_with_a_cpu_generator():
     y, truth, prior = clusters(400, 3, device="cuda")
     g = torch.Generator().manual_seed(0)
-    state = fit_dp_mixture(y, prior, 5, generator=g, init="sequential", sampler="slice")
+    state = DPSampler(prior, method="slice").fit(y, 5, generator=g, init="sequential")
     assert state.labels.device.type == "cuda"
     assert adjusted_rand_score(truth.numpy(), state.labels.cpu().numpy()) > 0.99

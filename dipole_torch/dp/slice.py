@@ -2,9 +2,9 @@
 sampler of Walker (2007) with the blocked updates of Kalli, Griffin & Walker (2011), "Slice
 sampling mixture models", Statistics and Computing 21.
 
-The model is the one :func:`dipole_torch.dp_mixture.neal8_sweep` samples without reward
-weighting: G ~ DP(α, H), (μ_i, Σ_i) ~ G, y_i ~ N(μ_i, Σ_i + R), with H the (non-conjugate)
-:class:`~dipole_torch.prior.NormalInverseWishartPrior`. Written with sticks,
+The model is the one Algorithm 8 (:class:`~dipole_torch.dp.sampler.DPSampler`) samples
+without reward weighting: G ~ DP(α, H), (μ_i, Σ_i) ~ G, y_i ~ N(μ_i, Σ_i + R), with H the
+(non-conjugate) :class:`~dipole_torch.prior.NormalInverseWishartPrior`. Written with sticks,
 G = Σ_j w_j δ_{θ_j}, w_j = v_j Π_{l<j} (1 − v_l), v_j ~ Beta(1, α), θ_j ~ H, and with one slice
 variable per point, u_i | z_i ~ U(0, w_{z_i}), the joint density is
 
@@ -14,7 +14,7 @@ and integrating u_i out gives back P(z_i = j) = w_j. Given the slices only the f
 sticks with w_j > min_i u_i can hold a point, so a sweep needs finitely many. A sweep:
 
 1. the occupied atoms | their points: Algorithm 8's step 2
-   (:func:`dipole_torch.dp_mixture.resample_parameters`, the Σ step with its
+   (:func:`dipole_torch.dp.conditionals.resample_parameters`, the Σ step with its
    Metropolis-Hastings correction for R), then H | the occupied atoms when H is updated;
 2. the sticks | labels, u integrated out: v_j ~ Beta(1 + n_j, α + Σ_{l>j} n_l);
 3. the slices | sticks, labels: u_i = w_{z_i} · U(0, 1];
@@ -38,19 +38,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-from dipole_torch.dp_mixture import (
-    DTYPE,
-    DPMixtureState,
-    _log_prob_tril,
-    _uniforms,
-    resample_parameters,
-)
+from dipole_torch.dp.conditionals import resample_parameters
+from dipole_torch.dp.state import DPMixtureState
+from dipole_torch.gaussian import DTYPE, log_prob_tril
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.sampling import _to, draw_categorical
+from dipole_torch.sampling import _to, draw_categorical, uniforms
+
+if TYPE_CHECKING:
+    from dipole_torch.dp.sampler import DPSampler
+
+__all__ = ["SliceChain", "slice_sweep"]
 
 _STICK_BLOCK = 8  # sticks drawn at a time when the slices need more
 _MAX_STICKS = 2**16  # about α·log(1 / min u) are needed: far more means α is huge
@@ -75,7 +77,7 @@ class SliceChain:
 
     @classmethod
     def from_state(cls, state: DPMixtureState) -> SliceChain:
-        """Start a chain from a state of :func:`~dipole_torch.dp_mixture.neal8_sweep` (its
+        """Start a chain from a :class:`~dipole_torch.dp.state.DPMixtureState` (its
         component c on stick c)."""
         return cls(state.labels, state.means, state.covariances, state.prior)
 
@@ -91,33 +93,20 @@ class SliceChain:
 
 
 def slice_sweep(
-    y: Tensor,
-    chain: SliceChain,
-    alpha: float = 1.0,
-    generator: torch.Generator | None = None,
-    inner_steps: int = 2,
-    initial_prior: NormalInverseWishartPrior | None = None,
-    update_prior: bool = True,
-    exact_covariance: bool = True,
+    y: Tensor, chain: SliceChain, sampler: DPSampler, generator: torch.Generator | None
 ) -> SliceChain:
-    """One sweep of the slice sampler (module docstring: steps 1–5).
+    """One sweep of the slice sampler (module docstring: steps 1–5), with ``sampler``'s α,
+    inner steps, H update and Σ step; its prior anchors the update of H.
 
     Args:
         y: ``[N, D]`` data (float64).
         chain: the current state.
-        alpha: DP concentration α > 0.
         generator: source of all randomness (its device may differ from ``y``'s).
-        inner_steps: alternations of the μ and Σ conditionals of the occupied atoms.
-        initial_prior: the prior the chain started from (anchors the update of H);
-            defaults to ``chain.prior``.
-        update_prior: redraw H's hyperparameters given the occupied atoms.
-        exact_covariance: the Metropolis-Hastings correction of the Σ step for R.
 
     Returns:
         The new state.
     """
-    if not alpha > 0:
-        raise ValueError(f"alpha must be positive, got {alpha}")
+    alpha = sampler.alpha
     y = y if y.dtype == DTYPE else y.to(DTYPE)
     n = y.shape[0]
     prior = chain.prior
@@ -133,12 +122,12 @@ def slice_sweep(
         remap[labels], chain.means[:sticks][occupied], chain.covariances[:sticks][occupied], prior
     )
     compact = resample_parameters(
-        y, compact, inner_steps, generator, exact_covariance, counts=counts[occupied]
-    )
-    if update_prior:
-        anchor = initial_prior if initial_prior is not None else prior
+        y, compact, sampler.inner_steps, generator, sampler.exact_covariance,
+        counts=counts[occupied],
+    )  # fmt: skip
+    if sampler.update_prior:
         prior = prior.updated(
-            compact.means, compact.covariances - prior.regularization, anchor, generator
+            compact.means, compact.covariances - prior.regularization, sampler.prior, generator
         )
 
     # 2. The sticks, given the labels: v_j ~ Beta(1 + n_j, α + Σ_{l>j} n_l), in log space
@@ -148,7 +137,7 @@ def slice_sweep(
     log_w = log_v + _exclusive_cumsum(log_rest)  # [J] log w_j
 
     # 3. The slices: log u_i = log w_{z_i} + log U(0, 1] (U = 1 − U[0, 1) is never 0).
-    log_u = log_w[labels] + torch.log1p(-_uniforms(n, generator, y.device))
+    log_u = log_w[labels] + torch.log1p(-uniforms(n, generator, y.device))
 
     # 4. More sticks until the mass left is below every slice.
     lowest = float(log_u.min())
@@ -173,9 +162,9 @@ def slice_sweep(
     means[~kept], covs[~kept] = fresh_means, fresh_covs
 
     # 5. Every label at once, among the sticks above its slice.
-    log_lik = _log_prob_tril(y[:, None, :], means, torch.linalg.cholesky(covs))  # [N, J]
+    log_lik = log_prob_tril(y[:, None, :], means, torch.linalg.cholesky(covs))  # [N, J]
     logits = torch.where(log_u[:, None] <= log_w, log_lik, -math.inf)
-    new_labels = draw_categorical(logits, _uniforms(n, generator, y.device))
+    new_labels = draw_categorical(logits, uniforms(n, generator, y.device))
     return SliceChain(new_labels, means, covs, prior)
 
 

@@ -1,5 +1,6 @@
-"""max_sampled: with more active policies than it, only the ones with the best kept returns
-are sampled in an iteration; the others wait unchanged and get their turn later."""
+"""Scouting and turn-taking (dipole_torch.mechanisms.scouting). max_sampled: with more active
+policies than it, only the ones with the best kept returns are sampled in an iteration; the
+others wait unchanged and get their turn later."""
 
 import pytest
 import torch
@@ -44,7 +45,7 @@ def five_policies(opt: Dipole) -> list[float]:
         samples=samples,
     )
     opt.iteration = 1  # the next tell is no clustering
-    opt._clear_pairs()
+    opt.vetting._clear_pairs()
     return samples
 
 
@@ -56,19 +57,19 @@ def test_only_the_best_max_sampled_active_policies_are_asked_and_the_others_wait
     owners = opt.asked_owner
     # Policy 4's return is the best, but it is retired: 3 and 1 are asked.
     assert sorted(owners[owners >= 0].tolist()) == [1, 3]
-    state = ("policy_means", "policy_covariances", "success")
-    before = {name: getattr(opt, name).clone() for name in state}
+    state = ("means", "covariances", "success")
+    before = {name: getattr(opt.policy_set, name).clone() for name in state}
     opt.tell(theta, equal_maxima(theta))
     assert opt.num_policies == 5
     waiting = torch.tensor([0, 2, 4])
     for name in state:
-        assert torch.equal(getattr(opt, name)[waiting], before[name][waiting]), name
+        assert torch.equal(getattr(opt.policy_set, name)[waiting], before[name][waiting]), name
     # Every policy has a latest return: the two samples', then the kept means of the others.
     assert opt.last_rewards.shape == (5,)
     kept = equal_maxima(torch.tensor(samples, dtype=DTYPE)[waiting, None])
     assert torch.equal(opt.last_rewards[2:], kept)
     asked = torch.tensor([1, 3])
-    assert not torch.equal(opt.policy_covariances[asked], before["policy_covariances"][asked])
+    assert not torch.equal(opt.policy_covariances[asked], before["covariances"][asked])
 
 
 def test_without_a_limit_every_active_policy_is_asked():

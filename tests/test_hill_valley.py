@@ -1,6 +1,7 @@
-"""The hill-valley test between neighbouring policies with several probes (Ursem 1999):
-a valley that lies nearer the worse policy than the midpoint is found, and one probe is the
-previous midpoint test, bit for bit."""
+"""Hill-valley vetting (dipole_torch.mechanisms.hill_valley): between neighbouring policies
+with several probes (Ursem 1999), a valley that lies nearer the worse policy than the
+midpoint is found, and one probe is the midpoint test, bit for bit; a retired policy short
+of the top is replaced by a better candidate."""
 
 import math
 
@@ -30,20 +31,15 @@ def with_two_policies(pair_points: int) -> Dipole:
     )
     theta = opt.ask()
     opt.tell(theta, two_hills(theta))
-    opt.policy_means = torch.tensor([[0.0], [3.005]], dtype=DTYPE)
-    opt.policy_covariances = torch.full((2, 1, 1), 0.01, dtype=DTYPE)
-    opt.active = torch.tensor([True, True])
-    opt.success = torch.full((2,), Dipole.TARGET_SUCCESS, dtype=DTYPE)
-    opt.paths = torch.zeros(2, 1, dtype=DTYPE)
-    opt.thetas = opt.policy_means.clone()
-    opt.rewards = two_hills(opt.thetas)
-    opt.owner = torch.arange(2)
+    means = torch.tensor([[0.0], [3.005]], dtype=DTYPE)
+    opt.policy_set.reset(means, torch.full((2, 1, 1), 0.01, dtype=DTYPE))
+    opt.archive.replace(means.clone(), two_hills(means), torch.arange(2))
     return opt
 
 
 def judge_pairs(opt: Dipole) -> None:
-    opt._probe_pairs()
-    opt._judge_pairs(two_hills(opt.pair_probes))
+    opt.vetting._probe_pairs(opt)
+    opt.vetting._judge_pairs(opt, two_hills(opt.vetting.pair_probes))
 
 
 def test_three_probes_find_the_valley_near_the_worse_policy():
@@ -60,14 +56,14 @@ def test_the_midpoint_alone_misses_it_and_drops_the_worse_policy():
 
 def test_probes_lie_at_quarters_and_one_probe_is_the_midpoint_bit_for_bit():
     opt = with_two_policies(pair_points=3)
-    opt._probe_pairs()
+    opt.vetting._probe_pairs(opt)
     a, b = opt.thetas[0], opt.thetas[1]
     expected = torch.stack([0.75 * a + 0.25 * b, 0.5 * (a + b), 0.25 * a + 0.75 * b])
-    torch.testing.assert_close(opt.pair_probes, expected, rtol=0, atol=1e-15)
+    torch.testing.assert_close(opt.vetting.pair_probes, expected, rtol=0, atol=1e-15)
     opt = with_two_policies(pair_points=1)
-    opt.thetas = torch.tensor([[0.1], [2.9]], dtype=DTYPE)  # 0.1 + 2.9 rounds
-    opt._probe_pairs()
-    assert torch.equal(opt.pair_probes, 0.5 * (opt.thetas[:1] + opt.thetas[1:]))
+    opt.archive.thetas = torch.tensor([[0.1], [2.9]], dtype=DTYPE)  # 0.1 + 2.9 rounds
+    opt.vetting._probe_pairs(opt)
+    assert torch.equal(opt.vetting.pair_probes, 0.5 * (opt.thetas[:1] + opt.thetas[1:]))
 
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, True, float("nan"), "3"])
@@ -89,7 +85,39 @@ def test_a_whole_run_with_three_pair_points_finds_every_optimum():
     while opt.trials < 2000:
         theta = opt.ask()
         opt.tell(theta, torch.sin(5.0 * math.pi * theta[:, 0]).pow(6))
-        assert opt.pair_probes.shape[0] == 3 * opt.pair_index.shape[0]
+        assert opt.vetting.pair_probes.shape[0] == 3 * opt.vetting.pair_index.shape[0]
     means = opt.policy_means[:, 0]
     for top in (0.1, 0.3, 0.5, 0.7, 0.9):
         assert (means - top).abs().min() < 1e-3, top
+
+
+def test_a_retired_policy_short_of_the_top_is_replaced_by_a_better_candidate():
+    # One hill, f(θ) = −θ². A policy retired at θ = 2 (its samples straddled, say) claims a
+    # top; a candidate on the same hill with a better sample (θ = 1) refutes it: the probe
+    # midpoint shows no valley, yet the candidate becomes a policy and the retired one goes.
+    # (Before, the candidate was dropped and the retired policy blocked its hill for good.)
+    def hill(theta):
+        return -theta.double().pow(2).sum(-1)
+
+    opt = Dipole(
+        torch.zeros(1, dtype=DTYPE),
+        torch.eye(1, dtype=DTYPE),
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, hill(theta))
+    one = torch.ones(1, 1, dtype=DTYPE)
+    opt.policy_set.reset(2.0 * one, 1e-8 * one[None])
+    opt.policy_set.active = torch.zeros(1, dtype=torch.bool)
+    opt.archive.replace(
+        2.0 * one, torch.tensor([-4.0], dtype=DTYPE), torch.zeros(1, dtype=torch.long)
+    )
+    vetting = opt.vetting
+    vetting.add_candidates(one, 0.1 * one[None], one, torch.tensor([-1.0], dtype=DTYPE))
+    vetting._probe_candidates(opt)
+    probe = vetting.candidate_probes
+    assert torch.allclose(probe, torch.tensor([[1.5]], dtype=DTYPE))
+    vetting.probe_rewards = hill(probe)  # -2.25: no valley between θ = 1 and θ = 2
+    vetting.judge(opt)
+    assert opt.num_policies == 1 and bool(opt.active[0])
+    assert torch.allclose(opt.policy_means, one)

@@ -1,0 +1,121 @@
+"""The samples a policy search keeps: θ, their returns, and the policy owning each."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from dipole_torch.gaussian import DTYPE
+
+__all__ = ["NO_POLICY", "PROBE", "SampleArchive"]
+
+# Owner codes of told rows: k >= 0, a sample of policy k; NO_POLICY, a sample that belongs to
+# no policy yet (a scout); PROBE, an evaluation that is not a sample of any exploration
+# distribution (a hill-valley probe): it never enters the archive.
+NO_POLICY = -1
+PROBE = -2
+
+
+class SampleArchive:
+    """The kept samples: ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]`` (a policy
+    index, or :data:`NO_POLICY`), re-indexed together.
+
+    Args:
+        dim: D.
+        device: where the tensors live (float64).
+    """
+
+    def __init__(self, dim: int, device: torch.device):
+        self.thetas = torch.empty(0, dim, dtype=DTYPE, device=device)
+        self.rewards = torch.empty(0, dtype=DTYPE, device=device)
+        self.owner = torch.empty(0, dtype=torch.long, device=device)
+
+    def __len__(self) -> int:
+        return int(self.rewards.shape[0])
+
+    def append(self, thetas: Tensor, rewards: Tensor, owner: Tensor) -> None:
+        """Add samples ``thetas [B, D]``, ``rewards [B]``, ``owner [B]``."""
+        self.thetas = torch.cat((self.thetas, thetas))
+        self.rewards = torch.cat((self.rewards, rewards))
+        self.owner = torch.cat((self.owner, owner))
+
+    def keep(self, mask: Tensor) -> None:
+        """Keep the samples ``mask`` (``[N]`` bool, or indices)."""
+        self.thetas, self.rewards, self.owner = (
+            self.thetas[mask],
+            self.rewards[mask],
+            self.owner[mask],
+        )
+
+    def replace(self, thetas: Tensor, rewards: Tensor, owner: Tensor) -> None:
+        """Forget every sample; keep these instead."""
+        self.thetas, self.rewards, self.owner = thetas, rewards, owner
+
+    def per_policy(self, reduce: str, num_policies: int) -> Tensor:
+        """``[K]`` the ``"amax"`` or ``"amin"`` of each policy's kept returns (∓inf: none)."""
+        empty = -math.inf if reduce == "amax" else math.inf
+        start = torch.full((num_policies,), empty, dtype=DTYPE, device=self.rewards.device)
+        owned = self.owner >= 0
+        return start.scatter_reduce(0, self.owner[owned], self.rewards[owned], reduce)
+
+    def counts(self, num_policies: int) -> Tensor:
+        """``[K]`` the number of kept samples of each policy."""
+        return torch.bincount(self.owner[self.owner >= 0], minlength=num_policies)
+
+    def mean_rewards(self, num_policies: int) -> Tensor:
+        """``[K]`` each policy's mean kept return (0 for a policy with none)."""
+        owned = self.owner >= 0
+        total = torch.zeros(num_policies, dtype=DTYPE, device=self.rewards.device).index_add_(
+            0, self.owner[owned], self.rewards[owned]
+        )
+        count = torch.bincount(self.owner[owned], minlength=num_policies).clamp_min(1)
+        return total / count
+
+    def best_samples(self, means: Tensor) -> Tensor:
+        """``[K, D]`` each policy's best kept sample (its row of ``means [K, D]`` where it
+        has none)."""
+        best = means.clone()
+        owned = (self.owner >= 0).nonzero().squeeze(-1)
+        order = owned[torch.argsort(self.rewards[owned], stable=True)]
+        best[self.owner[order]] = self.thetas[order]  # ascending: the best is written last
+        return best
+
+    def drop_policies(self, keep: Tensor) -> None:
+        """Drop the samples of the policies not in ``keep [K]`` (bool) and renumber the
+        owners of the others (samples of no policy stay)."""
+        new_index = torch.cumsum(keep.long(), 0) - 1
+        self.keep((self.owner < 0) | keep[self.owner.clamp_min(0)])
+        self.owner = torch.where(self.owner >= 0, new_index[self.owner.clamp_min(0)], self.owner)
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {"thetas": self.thetas.clone(), "rewards": self.rewards.clone(),
+                "owner": self.owner.clone()}  # fmt: skip
+
+    def load_state_dict(self, state: dict, device: torch.device) -> None:
+        """Load ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]``; raises ``ValueError``
+        naming the key whose shape or type does not fit."""
+        d = self.thetas.shape[1]
+        thetas, rewards, owner = (state[key] for key in ("thetas", "rewards", "owner"))
+        _check_tensor(thetas, "thetas", (None, d))
+        n = thetas.shape[0]
+        _check_tensor(rewards, "rewards", (n,))
+        _check_tensor(owner, "owner", (n,), integral=True)
+        self.thetas = thetas.to(device=device, dtype=DTYPE)
+        self.rewards = rewards.to(device=device, dtype=DTYPE)
+        self.owner = owner.to(device=device, dtype=torch.long)
+
+
+def _check_tensor(value, key: str, shape: tuple, integral: bool = False) -> None:
+    """Raise ``ValueError`` unless ``value`` is a tensor of ``shape`` (None: any size)."""
+    if not isinstance(value, Tensor):
+        raise ValueError(f"state_dict[{key!r}] must be a tensor, got {type(value).__name__}")
+    fits = value.dim() == len(shape) and all(
+        s is None or s == t for s, t in zip(shape, value.shape, strict=False)
+    )
+    if not fits:
+        want = ", ".join("N" if s is None else str(s) for s in shape)
+        raise ValueError(f"state_dict[{key!r}] must have shape [{want}], got {list(value.shape)}")
+    if integral and value.is_floating_point():
+        raise ValueError(f"state_dict[{key!r}] must hold integers, got {value.dtype}")

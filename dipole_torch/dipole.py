@@ -1,0 +1,343 @@
+"""DIPOLE (Algorithm 2 of the paper): PoWER on every component of a reward-weighted DP mixture."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dipole_torch.dp.conditionals import posterior_point_estimate
+from dipole_torch.dp.sampler import DPSampler
+from dipole_torch.dp.state import DPMixtureState
+from dipole_torch.gaussian import DTYPE
+from dipole_torch.gaussian_mixture import GaussianMixture
+from dipole_torch.inputs import Bounds
+from dipole_torch.mechanisms.exploration import make_exploration
+from dipole_torch.mechanisms.hill_valley import PROBE, make_vetting
+from dipole_torch.mechanisms.matching import OverlapMatching, ReplaceMatching, adopt_components
+from dipole_torch.mechanisms.retirement import Retirement
+from dipole_torch.mechanisms.scouting import Scouting
+from dipole_torch.options import DipoleOptions
+from dipole_torch.power import make_importance
+from dipole_torch.prior import NormalInverseWishartPrior
+from dipole_torch.search import PolicySearch, TellBatch
+
+__all__ = ["Dipole"]
+
+# auxiliary="auto" re-uses auxiliary draws from this dimension p = D + 1 of [θ, r] on, where
+# Algorithm 8's N·m inverse-Wishart draws of p × p are most of a clustering.
+REUSE_AUXILIARY_DIM = 32
+
+
+class Dipole(PolicySearch):
+    """DIPOLE (Algorithm 2): PoWER on every component of a reward-weighted DP mixture.
+
+    * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per sampled policy
+      from its exploration Gaussian, and any scouts and hill-valley probes
+      (:attr:`asked_owner` says which row is which).
+    * ``tell()``: the PoWER step (eq. 7) of every policy on its importance set; after the
+      initial batch and every ``cluster_every`` iterations, a weighted DP clustering (eq. 6,
+      Neal's Algorithm 8) of the kept samples, augmented with their reward weights
+      y = [θ, w], redefines the policies.
+
+    The options (:class:`~dipole_torch.DipoleOptions`: keyword arguments, or ``options=``)
+    choose one object per mechanism, and the core below calls them at fixed points of an
+    iteration: the importance sets (:mod:`dipole_torch.power`), exploration
+    (:mod:`~dipole_torch.mechanisms.exploration`), scouting and turn-taking
+    (:mod:`~dipole_torch.mechanisms.scouting`), hill-valley vetting
+    (:mod:`~dipole_torch.mechanisms.hill_valley`), retirement, merging and restarts
+    (:mod:`~dipole_torch.mechanisms.retirement`), and matching components to policies
+    (:mod:`~dipole_torch.mechanisms.matching`). :meth:`paper` builds the paper's set.
+
+    >>> opt = Dipole([0.0, 0.0], 0.7, generator=torch.Generator().manual_seed(0))
+    >>> while not opt.stop(max_trials=300):
+    ...     theta = opt.ask()
+    ...     opt.tell(theta, -100.0 * (theta - 1.0).pow(2).sum(-1))  # any units, no range
+    >>> bool(opt.best()[1] > -1e-3)
+    True
+
+    Args:
+        theta0: ``[D]`` initial policy (a tensor, a list or a numpy array).
+        sigma_start: initial exploration: one std σ (σ² I), ``[D]`` stds or a ``[D, D]``
+            covariance Σ_start.
+        options: a :class:`~dipole_torch.DipoleOptions` (default: the library's variant).
+        generator: ``torch.Generator`` for every draw (default: seeded from torch's global
+            generator).
+        bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or
+            ``[D]`` tensors; ±inf leaves a side open), or ``None``.
+        **changes: options to change (``alpha``, ``M``, ``explore``, …; see
+            :class:`~dipole_torch.DipoleOptions`).
+
+    Choices where the paper is silent:
+        * The prior H is built at the first clustering from the exploration distribution:
+          μ0 = [θ0, mean w], Σ0 = E[Σ] = blockdiag(Σ_start, var w) (var w floored at 1 % of
+          the largest weight squared), ν0 = ``prior_df`` (default D + 3 = p + 2 for the
+          p = D + 1 dimensions of y: the weakest inverse-Wishart prior with a finite mean).
+          It is carried from clustering to clustering, updated after every sweep.
+        * A clustering ends with the conditional posterior means of the last Gibbs state
+          (:func:`~dipole_torch.dp.posterior_point_estimate`).
+        * r_c in eq. 6 is E[w | θ = μ_c^θ] under the mixture at the start of each sweep.
+    """
+
+    def __init__(
+        self,
+        theta0,
+        sigma_start,
+        options: DipoleOptions | None = None,
+        *,
+        generator: torch.Generator | None = None,
+        bounds: Bounds = None,
+        **changes,
+    ):
+        options = (options or DipoleOptions()).replace(**changes)
+        n0 = 2 * options.M if options.n0 is None else options.n0
+        super().__init__(
+            theta0, sigma_start, options.M, n0, options.reward_range, options.reward_floor,
+            generator, bounds,
+        )  # fmt: skip
+        self.options = options
+        d = self.dim
+        self.cluster_every = options.M if options.cluster_every is None else options.cluster_every
+        self.prior_df = float(d + 3 if options.prior_df is None else options.prior_df)
+        if not self.prior_df > d + 2:
+            raise ValueError(f"prior_df must exceed D + 2 = {d + 2}, got {options.prior_df}")
+        if options.auxiliary == "reuse" and self.device.type != "cpu":
+            raise ValueError(
+                f"auxiliary='reuse' runs on the CPU only; on {self.device} use 'fresh' or 'auto'"
+            )
+        reuse = options.auxiliary == "reuse" or (
+            options.auxiliary == "auto"
+            and d + 1 >= REUSE_AUXILIARY_DIM
+            and self.device.type == "cpu"
+        )
+        self.auxiliary = "reuse" if reuse else "fresh"
+        # The mechanisms, one object each ("off" is an object too).
+        self.importance = make_importance(options.importance)
+        self.exploration = make_exploration(options.exploration, d)
+        self.scouting = Scouting(options.explore, options.max_sampled)
+        self.vetting = make_vetting(
+            options.hill_valley, d, self.device, options.pair_points, options.max_policies,
+            self.cluster_every,
+        )  # fmt: skip
+        self.retirement = Retirement(
+            options.retire_std, options.merge_radius, self.exploration.keeps_covariance
+        )
+        self.matching = ReplaceMatching() if options.matching == "replace" else OverlapMatching()
+        self.exploration.register(self)
+        self.matching.register(self)
+        self.clusterings_skipped = 0  # clusterings that failed numerically
+        self.sampler: DPSampler | None = None  # built with H at the first clustering
+        self.dp_state: DPMixtureState | None = None
+
+    @classmethod
+    def paper(cls, theta0, sigma_start, **changes) -> Dipole:
+        """DIPOLE exactly as in the paper (:meth:`DipoleOptions.paper`), then ``changes``."""
+        generator, bounds = changes.pop("generator", None), changes.pop("bounds", None)
+        return cls(theta0, sigma_start, DipoleOptions.paper(**changes),
+                   generator=generator, bounds=bounds)  # fmt: skip
+
+    @property
+    def initial_prior(self) -> NormalInverseWishartPrior | None:
+        """H as the first clustering built it (``None`` before)."""
+        return None if self.sampler is None else self.sampler.prior
+
+    @property
+    def converged(self) -> Tensor:
+        return self.retirement.converged(self)
+
+    # ------------------------------------------------------------------ ask
+    def _batch_size(self) -> int:
+        sampled = self.scouting.sampled_policies(self).numel() if bool(self.active.any()) else 0
+        probes = self.vetting.probes()
+        return (
+            sampled
+            + self.scouting.scouts(self, sampled)
+            + (0 if probes is None else probes.shape[0])
+        )
+
+    def _sampled_policies(self) -> Tensor:
+        return self.scouting.sampled_policies(self)
+
+    def _propose(self) -> tuple[Tensor, Tensor]:
+        """Policy samples, then scouts, then hill-valley probes."""
+        if bool(self.active.any()):
+            theta, owner = super()._propose()
+        else:
+            theta, owner = self.archive.thetas[:0], self.archive.owner[:0]
+        scouts = self.scouting.scouts(self, theta.shape[0])
+        if scouts:
+            extra, extra_owner = self.scouting.draw_scouts(self, scouts)
+            theta, owner = torch.cat((theta, extra)), torch.cat((owner, extra_owner))
+        probes = self.vetting.probes()
+        if probes is not None:
+            theta = torch.cat((theta, probes))
+            owner = torch.cat((owner, torch.full_like(probes[:, 0], PROBE, dtype=torch.long)))
+        return theta, owner
+
+    # ------------------------------------------------------------------ tell
+    def _observe(self, batch: TellBatch) -> None:
+        """Before the samples are archived: the success rule judges them against the kept
+        ones, retirement notes the samples worse than all kept ones, vetting keeps the
+        probes' returns."""
+        self.vetting.observe(self, batch)
+        self.exploration.observe(self, batch)
+        self.retirement.observe(self, batch)
+
+    def _iterate(self) -> None:
+        """One iteration of Algorithm 2 after the samples are told."""
+        self.importance.power_step(self)  # eq. 7 on each policy's importance set
+        self.retirement.restart_straddlers(self)  # while policies are numbered as told
+        self.vetting.judge(self)  # the probes told in this batch
+        restart = not bool(self.active.any())  # every policy retired: cluster the scouts
+        clustered = restart or self.iteration % self.cluster_every == 0
+        if clustered:
+            self._cluster()
+        self.retirement.retire_and_merge(self)
+        self.vetting.queue_probes(self, clustered)
+
+    # ------------------------------------------------------------------ clustering
+    def _augmented(self, rows: Tensor | None = None) -> Tensor:
+        """``[N, D + 1]`` the kept samples (or ``rows`` of them) as y = [θ, w]."""
+        rewards = self.archive.rewards
+        w = self.reward_scale.weights(rewards, reference=rewards)
+        if rows is not None:
+            return torch.cat((self.archive.thetas[rows], w[rows, None]), dim=1)
+        return torch.cat((self.archive.thetas, w[:, None]), dim=1)
+
+    def _fit(self, y: Tensor, sweeps: int, start: DPMixtureState | None = None) -> DPMixtureState:
+        """``sweeps`` Gibbs sweeps of the weighted DP mixture on ``y`` from ``start`` (or
+        Algorithm 1's single component), ending with the posterior point estimate."""
+        return posterior_point_estimate(y, self.sampler.fit(y, sweeps, self.generator, start))
+
+    def _after_initial_batch(self) -> None:
+        """Build H from the exploration distribution, cluster the n0 samples (from one
+        component) and make the components the policies."""
+        y = self._augmented()
+        w = y[:, -1]
+        var_w = float(w.var()) if w.numel() > 1 else 0.0
+        mean = torch.cat((self.theta0, w.mean()[None]))
+        # Floor the prior's reward variance relative to the weights' own scale (positive
+        # returns used as weights may be of any order).
+        floor = 1e-2 * float(w.abs().max()) ** 2
+        reward_variance = torch.tensor([[max(var_w, floor)]], dtype=DTYPE, device=self.device)
+        prior = NormalInverseWishartPrior.from_exploration(
+            mean,
+            torch.block_diag(self.sigma_start, reward_variance),
+            df=self.prior_df,
+            regularization=self.options.regularization,
+        )
+        self.sampler = DPSampler(
+            prior,
+            alpha=self.options.alpha,
+            m=self.options.m,
+            reward_weighted=self.options.reward_weighted,
+            auxiliary=self.auxiliary,
+        )
+        try:
+            state = self._fit(y, self.options.initial_sweeps)
+        except torch.linalg.LinAlgError:
+            # See _cluster: start from Algorithm 1's single component instead.
+            self.clusterings_skipped += 1
+            state = posterior_point_estimate(y, DPMixtureState.single_component(y, prior))
+        self.matching.adopted(self, adopt_components(self, state))
+
+    def _cluster(self) -> None:
+        """Algorithm 2's weighted DP clustering, warm-started, its result matched to the
+        policies (:attr:`matching` decides which samples, the start, and the matching)."""
+        rows = self.matching.clustered_rows(self)
+        if rows.numel() == 0:
+            return
+        y = self._augmented(rows)
+        try:
+            state = self._fit(y, self.options.sweeps, self.matching.warm_start(self, y, rows))
+        except torch.linalg.LinAlgError:
+            # Converged policies' samples can make a component's covariance numerically
+            # singular in float64. A run that goes well must not stop: skip this clustering
+            # (the policies go on with their own exploration) and forget the scouts.
+            self.clusterings_skipped += 1
+            self.archive.keep(self.archive.owner >= 0)
+            return
+        self.matching.apply(self, rows, y, state)
+
+    # ------------------------------------------------------------------ the world changes
+    def _reevaluate(self, returns: Tensor) -> None:
+        self.vetting.forget()  # queued tests compare returns of the old world
+        self.retirement.forget()
+        super()._reevaluate(returns)
+
+    # ------------------------------------------------------------------ the model
+    @property
+    def mixture(self) -> GaussianMixture:
+        """The IGMM over [θ, r] of the last clustering, with the policies' current means,
+        r in return units.
+
+        ``mixture.condition(range(D), theta).mean`` predicts the return of ``theta``;
+        ``mixture.condition([D], r)`` is the distribution of policies given a return level.
+        Components are the last clustering's; with ``matching="overlap"`` policies created
+        or merged since then are not in it.
+        """
+        if self.dp_state is None:
+            raise RuntimeError("the mixture exists after the first tell()")
+        rewards = self.archive.rewards
+        scale = torch.ones(self.dim + 1, dtype=DTYPE, device=self.device)
+        scale[-1] = self.reward_scale.slope(rewards)
+        means = self.dp_state.means.clone()
+        current = isinstance(self.matching, ReplaceMatching)
+        current = current and means.shape[0] == self.num_policies
+        if current:  # the components are the policies: at their current means
+            means[:, : self.dim] = self.policy_means
+        means[:, -1] = self.reward_scale.inverse(means[:, -1], rewards)
+        covs = self.dp_state.covariances * scale[:, None] * scale[None, :]
+        if current:
+            weights = self.archive.counts(self.num_policies).to(DTYPE).clamp_min(1.0)
+        else:
+            weights = self.dp_state.counts.to(DTYPE).clamp_min(1.0)
+        return GaussianMixture(weights, means, covs, validate_args=False)
+
+    @property
+    def policy_rewards(self) -> Tensor:
+        """``[K]`` the return the mixture predicts at each policy's mean (r_c of eq. 6)."""
+        return self.mixture.condition(range(self.dim), self.policy_means).mean[..., 0]
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        return {
+            **super().state_dict(),
+            **self.vetting.state_dict(),
+            "initial_prior": None if self.sampler is None else self.sampler.prior.state_dict(),
+            "dp_state": None if self.dp_state is None else self.dp_state.state_dict(),
+            "clusterings_skipped": self.clusterings_skipped,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        try:
+            self.vetting.load_state_dict(state, self.device)
+            prior, dp = (
+                _to_device(state[key], self.device) for key in ("initial_prior", "dp_state")
+            )
+        except KeyError as missing:
+            raise ValueError(f"state_dict has no {missing} (not a Dipole's)") from None
+        self.sampler = None
+        if prior is not None:
+            prior = NormalInverseWishartPrior.from_state_dict(prior)
+            if prior.dim != self.dim + 1:
+                raise ValueError(
+                    f"state_dict['initial_prior'] is over {prior.dim} dimensions, not D + 1 = "
+                    f"{self.dim + 1}"
+                )
+            self.sampler = DPSampler(
+                prior,
+                alpha=self.options.alpha,
+                m=self.options.m,
+                reward_weighted=self.options.reward_weighted,
+                auxiliary=self.auxiliary,
+            )
+        self.dp_state = None if dp is None else DPMixtureState.from_state_dict(dp)
+        self.clusterings_skipped = int(state.get("clusterings_skipped", 0))
+
+
+def _to_device(state, device: torch.device):
+    """``state`` (nested dicts of tensors and numbers, or None) with its tensors on ``device``."""
+    if isinstance(state, dict):
+        return {key: _to_device(value, device) for key, value in state.items()}
+    return state.to(device) if isinstance(state, Tensor) else state

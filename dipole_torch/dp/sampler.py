@@ -1,0 +1,170 @@
+"""The Gibbs sampler of the DP Gaussian mixture (IGMM) with its options, as one object."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dipole_torch.dp.neal8 import neal8_sweep
+from dipole_torch.dp.slice import SliceChain, slice_sweep
+from dipole_torch.dp.state import DPMixtureState
+from dipole_torch.gaussian import DTYPE
+from dipole_torch.prior import NormalInverseWishartPrior
+from dipole_torch.validation import check_choice, check_count, check_finite, check_matrix_shape
+
+__all__ = ["Chain", "DPSampler"]
+
+Chain = DPMixtureState | SliceChain  # what a sweep carries over: see DPSampler.sweep
+
+INITS = ("single", "sequential")
+
+
+class DPSampler:
+    """Gibbs sampler of the DP Gaussian mixture, with DIPOLE's reward weighting (eq. 6).
+
+    The model: G ~ DP(α, H), (μ_i, Σ_i) ~ G, y_i ~ N(μ_i, Σ_i + R), with H the non-linked
+    :class:`~dipole_torch.NormalInverseWishartPrior` and R its regularisation. A sweep draws
+    the labels (``method``), then every component's parameters from their conditionals
+    (:func:`~dipole_torch.dp.conditionals.resample_parameters`), then, with
+    ``update_prior``, H's hyperparameters (Algorithm 1's "update priors").
+
+    Args:
+        prior: H at the chain's start; it anchors the hyperpriors of H's update.
+        alpha: DP concentration α > 0 (paper: 1).
+        m: auxiliary components of Algorithm 8 (paper: 10).
+        reward_weighted: eq. 6: each component's probability times r_c, the reward the
+            mixture predicts at its mean (y's last column holds positive reward weights);
+            ``False``: eq. 5.
+        update_prior: redraw H's hyperparameters after every sweep; ``False`` keeps H fixed
+            at ``prior`` (the chain then samples the DP mixture posterior under that H).
+        exact_covariance: the Metropolis-Hastings correction of the Σ step for R;
+            ``False`` takes the conjugate draw of the unregularised model, then + R (an
+            ablation: a different model).
+        inner_steps: alternations of the μ | Σ and Σ | μ draws per sweep.
+        auxiliary: ``"fresh"``, Algorithm 8's m draws from H for every point (the paper's);
+            ``"reuse"``, one set of m a sweep, a slot redrawn when a point takes it (Favaro
+            & Teh 2013, exact too; CPU only).
+        method: ``"neal8"``, label by label (:func:`~dipole_torch.dp.neal8.neal8_sweep`);
+            ``"slice"``, every label at once (:func:`~dipole_torch.dp.slice.slice_sweep`;
+            exact, for large N and GPUs; eq. 5 only, ``m`` and ``auxiliary`` unused).
+
+    Example:
+        >>> g = torch.Generator().manual_seed(2)
+        >>> y = torch.randn(100, 2, generator=g, dtype=torch.float64)
+        >>> y[:50] -= 4
+        >>> y[50:] += 4
+        >>> prior = NormalInverseWishartPrior(  # means spread like the data, E[Σ] = 2 I
+        ...     mean_loc=y.mean(0), mean_covariance=torch.cov(y.T), df=8.0,
+        ...     scale=10.0 * torch.eye(2, dtype=torch.float64),
+        ...     regularization=1e-3 * torch.eye(2, dtype=torch.float64))
+        >>> sampler = DPSampler(prior, update_prior=False)
+        >>> state = sampler.fit(y, num_sweeps=20, generator=g, init="sequential")
+        >>> state.counts[state.counts >= 10].tolist()  # (tiny clusters may hold tail points)
+        [50, 50]
+    """
+
+    def __init__(
+        self,
+        prior: NormalInverseWishartPrior,
+        alpha: float = 1.0,
+        m: int = 10,
+        reward_weighted: bool = False,
+        update_prior: bool = True,
+        exact_covariance: bool = True,
+        inner_steps: int = 2,
+        auxiliary: str = "fresh",
+        method: str = "neal8",
+    ):
+        if not isinstance(prior, NormalInverseWishartPrior):
+            raise TypeError(f"prior must be a NormalInverseWishartPrior, got {type(prior)}")
+        if isinstance(alpha, bool) or not (isinstance(alpha, int | float) and alpha > 0):
+            raise ValueError(f"alpha must be a positive number, got {alpha!r}")
+        check_count(m, "m")
+        check_count(inner_steps, "inner_steps")
+        check_choice(auxiliary, ("fresh", "reuse"), "auxiliary")
+        check_choice(method, ("neal8", "slice"), "method")
+        if method == "slice" and (reward_weighted or auxiliary == "reuse"):
+            raise ValueError(
+                "method='slice' samples the unweighted DP mixture with its own draws: "
+                "reward_weighted must be False and auxiliary 'fresh'"
+            )
+        self.prior = prior
+        self.alpha = float(alpha)
+        self.m = int(m)
+        self.reward_weighted = bool(reward_weighted)
+        self.update_prior = bool(update_prior)
+        self.exact_covariance = bool(exact_covariance)
+        self.inner_steps = int(inner_steps)
+        self.auxiliary = auxiliary
+        self.method = method
+
+    def __repr__(self) -> str:
+        options = ", ".join(
+            f"{name}={getattr(self, name)!r}"
+            for name in ("alpha", "m", "reward_weighted", "update_prior", "auxiliary", "method")
+        )
+        return f"DPSampler({options})"
+
+    # ------------------------------------------------------------------ a chain
+    def start(
+        self, y: Tensor, init: str = "single", generator: torch.Generator | None = None
+    ) -> DPMixtureState:
+        """A chain's first state on ``y: [N, D]``: ``"single"``, Algorithm 1's one component
+        with the data's mean and covariance; ``"sequential"``, labels from one sequential
+        Chinese-restaurant pass (:func:`~dipole_torch.dp.state.sequential_labels`: for a
+        large, fresh data set, where single-site moves split one component too slowly)."""
+        check_choice(init, INITS, "init")
+        if init == "single":
+            return DPMixtureState.single_component(y, self.prior)
+        return DPMixtureState.sequential(y, self.prior, self.alpha, generator)
+
+    def to_chain(self, state: DPMixtureState) -> Chain:
+        """What :meth:`sweep` carries from ``state``: the state itself for Algorithm 8, a
+        :class:`~dipole_torch.dp.slice.SliceChain` (stick labels) for the slice sampler."""
+        return SliceChain.from_state(state) if self.method == "slice" else state
+
+    @staticmethod
+    def to_state(chain: Chain) -> DPMixtureState:
+        """The :class:`DPMixtureState` of a chain (contiguous labels, occupied components)."""
+        return chain.state() if isinstance(chain, SliceChain) else chain
+
+    def sweep(self, y: Tensor, chain: Chain, generator: torch.Generator | None = None) -> Chain:
+        """One sweep from ``chain`` (:meth:`to_chain`) on ``y: [N, D]`` (float64)."""
+        if self.method == "slice":
+            return slice_sweep(y, chain, self, generator)
+        return neal8_sweep(y, chain, self, generator)
+
+    def fit(
+        self,
+        y: Tensor,
+        num_sweeps: int = 50,
+        generator: torch.Generator | None = None,
+        state: DPMixtureState | None = None,
+        init: str = "single",
+    ) -> DPMixtureState:
+        """``num_sweeps`` sweeps on ``y`` from ``state`` (or from :meth:`start` with
+        ``init``); the last state.
+
+        Args:
+            y: ``[N, D]`` data, N ≥ 1, finite, D the prior's dimension.
+            num_sweeps: sweeps to run (≥ 1).
+            generator: source of all randomness.
+            state: where the chain starts (``state.labels: [N]``); overrides ``init``.
+            init: ``"single"`` or ``"sequential"`` (see :meth:`start`).
+        """
+        check_matrix_shape(y, (-1, self.prior.dim), "y")
+        check_finite(y, "y")
+        if y.shape[0] < 1:
+            raise ValueError("y must contain at least one point")
+        check_count(num_sweeps, "num_sweeps")
+        y = y.to(DTYPE)
+        if state is None:
+            state = self.start(y, init, generator)
+        elif state.labels.shape != (y.shape[0],):
+            raise ValueError(
+                f"state.labels must have shape [{y.shape[0]}], got {list(state.labels.shape)}"
+            )
+        chain = self.to_chain(state)
+        for _ in range(num_sweeps):
+            chain = self.sweep(y, chain, generator)
+        return self.to_state(chain)

@@ -1,0 +1,169 @@
+"""A state of the DP mixture's Gibbs chain, and the ways a chain starts."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dipole_torch.dp.conditionals import data_mean, posterior_point_estimate, residual_sums
+from dipole_torch.gaussian import DTYPE, LOG_2PI, gaussian_log_prob
+from dipole_torch.gaussian_mixture import GaussianMixture
+from dipole_torch.prior import NormalInverseWishartPrior
+from dipole_torch.sampling import draw_categorical_numpy, uniforms
+
+__all__ = ["DPMixtureState", "sequential_labels"]
+
+
+@dataclass
+class DPMixtureState:
+    """One state of the Gibbs chain.
+
+    Attributes:
+        labels: ``[N]`` component index of every point, contiguous in ``[0, K)``.
+        means: ``[K, D]`` component means.
+        covariances: ``[K, D, D]`` component covariances (regularisation included).
+        prior: the base distribution H, redrawn after every sweep when the sampler updates it.
+    """
+
+    labels: Tensor
+    means: Tensor
+    covariances: Tensor
+    prior: NormalInverseWishartPrior
+
+    @property
+    def num_components(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def counts(self) -> Tensor:
+        """``[K]`` number of points per component."""
+        return torch.bincount(self.labels, minlength=self.num_components)
+
+    def mixture(self) -> GaussianMixture:
+        """The fitted mixture, with weights proportional to the component sizes."""
+        return GaussianMixture(
+            self.counts.to(self.means.dtype), self.means, self.covariances, validate_args=False
+        )
+
+    @classmethod
+    def single_component(cls, y: Tensor, prior: NormalInverseWishartPrior) -> DPMixtureState:
+        """Algorithm 1's start: one component with the data's mean and covariance.
+
+        Args:
+            y: ``[N, D]`` data.
+        """
+        y = y.to(DTYPE)
+        n = y.shape[0]
+        mean = data_mean(y)
+        centred = y - mean  # the covariance from centred data: exact at any offset
+        cov = centred.T @ centred / max(n - 1, 1) + prior.regularization
+        if torch.linalg.cholesky_ex(cov)[1] != 0 or n < 2:
+            cov = prior.expected_covariance + prior.regularization
+        return cls(
+            labels=torch.zeros(n, dtype=torch.long, device=y.device),
+            means=mean[None],
+            covariances=cov[None],
+            prior=prior,
+        )
+
+    @classmethod
+    def from_labels(
+        cls, y: Tensor, labels: Tensor, prior: NormalInverseWishartPrior
+    ) -> DPMixtureState:
+        """A state with the given partition (any integer numbering) and each component at its
+        conditional posterior mean (:func:`~dipole_torch.dp.conditionals.posterior_point_estimate`),
+        e.g. to warm-start a chain."""
+        y = y.to(DTYPE)
+        labels = torch.unique(labels, return_inverse=True)[1].to(y.device)
+        k = int(labels.max()) + 1
+        centre = data_mean(y)
+        counts = torch.bincount(labels, minlength=k).to(DTYPE)
+        means = centre + residual_sums(y, labels, centre, k) / counts[:, None]
+        covs = (prior.expected_covariance + prior.regularization).expand(k, -1, -1).clone()
+        return posterior_point_estimate(y, cls(labels, means, covs, prior))
+
+    @classmethod
+    def sequential(
+        cls,
+        y: Tensor,
+        prior: NormalInverseWishartPrior,
+        alpha: float,
+        generator: torch.Generator | None,
+    ) -> DPMixtureState:
+        """A state from one sequential Chinese-restaurant pass (:func:`sequential_labels`)."""
+        return cls.from_labels(y, sequential_labels(y, prior, alpha, generator), prior)
+
+    def state_dict(self) -> dict:
+        return {
+            "labels": self.labels,
+            "means": self.means,
+            "covariances": self.covariances,
+            "prior": self.prior.state_dict(),
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> DPMixtureState:
+        return cls(
+            labels=state["labels"],
+            means=state["means"],
+            covariances=state["covariances"],
+            prior=NormalInverseWishartPrior.from_state_dict(state["prior"]),
+        )
+
+
+def sequential_labels(
+    y: Tensor, prior: NormalInverseWishartPrior, alpha: float, generator: torch.Generator | None
+) -> Tensor:
+    """Initial labels from one sequential Chinese-restaurant pass (an initialisation only;
+    the Gibbs sweeps that follow are exact).
+
+    Points are added one at a time, in an order drawn from ``generator``; point i joins
+    cluster c with probability ∝ n_c N(y_i; ȳ_c, (1 + 1/n_c) E_H[Σ]) (the predictive density
+    with Σ fixed at its prior mean and a flat prior on the cluster mean) or opens a new one
+    ∝ α N(y_i; μ0, Σ0 + E_H[Σ]), the marginal likelihood under H with Σ fixed at its prior mean.
+
+    Single-site Gibbs merges far more easily than it splits: from one component, a point
+    opens a new cluster only if (α/m)·N(y_i; aux) beats (n − 1)·N(y_i; all data), which for
+    clusters spread over a low-dimensional subspace of a 10-D space essentially never
+    happens. Start a large, fresh data set from these labels.
+
+    Returns:
+        ``[N]`` labels in ``[0, K)``.
+    """
+    y = y.to(DTYPE)
+    n, d = y.shape
+    cov = prior.expected_covariance + prior.regularization
+    chol = torch.linalg.cholesky(cov)
+    new_log_lik = gaussian_log_prob(y, prior.mean_loc, prior.mean_covariance + cov)  # [N]
+    draws = uniforms(n, generator, y.device).tolist()
+    log_alpha = math.log(alpha)
+    where = generator.device if generator is not None else y.device
+    order = torch.randperm(n, generator=generator, device=where).tolist()
+    # The per-point work in numpy, in coordinates whitened by chol (z = L⁻¹ (y − ȳ), centred
+    # first so that large offsets cancel): log N(y; ȳ_c, s C) = −½ (‖z − z̄_c‖² / s
+    # + D log s + log|2π C|) with s = 1 + 1/n_c.
+    z = torch.linalg.solve_triangular(chol, (y - data_mean(y)).T, upper=False).T.cpu().numpy()
+    const = -0.5 * d * LOG_2PI - float(chol.diagonal().log().sum())
+    new_log_lik = new_log_lik.cpu().numpy()
+    sums = np.zeros((n, d))
+    counts = np.zeros(n)
+    labels = np.empty(n, dtype=np.int64)
+    logits = np.empty(n + 1)
+    k = 0
+    for i in order:
+        if k > 0:
+            inflation = 1.0 + 1.0 / counts[:k]
+            distance = np.square(z[i] - sums[:k] / counts[:k, None]).sum(1)
+            existing = const - 0.5 * (distance / inflation + d * np.log(inflation))
+            np.add(np.log(counts[:k]), existing, out=logits[:k])
+        logits[k] = log_alpha + new_log_lik[i]
+        c = draw_categorical_numpy(logits[: k + 1], draws[i])
+        k = max(k, c + 1)
+        labels[i] = c
+        sums[c] += z[i]
+        counts[c] += 1
+    return torch.as_tensor(labels, device=y.device)

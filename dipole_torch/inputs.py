@@ -1,0 +1,133 @@
+"""What an optimizer accepts as θ0, Σ_start and bounds, turned into float64 tensors."""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dipole_torch.gaussian import DTYPE
+from dipole_torch.validation import (
+    check_finite,
+    check_matrix_shape,
+    check_positive_definite,
+    check_real_tensor,
+)
+
+__all__ = ["Bounds", "as_covariance", "as_theta0", "make_box"]
+
+Bounds = tuple[float | list[float] | Tensor, float | list[float] | Tensor] | None
+
+
+def as_theta0(theta0) -> Tensor:
+    """``theta0`` as a ``[D]`` floating tensor: a tensor as it is (its dtype and device are
+    the optimizer's), a list or a numpy array of numbers as float64 on the CPU (a numpy
+    float32 array stays float32). Integer and bool tensors are refused, not converted (a
+    silent cast would hide a mistake: an integer θ0 truncated every ask)."""
+    if isinstance(theta0, list | tuple) and all(_is_number(v) for v in theta0):
+        theta0 = torch.tensor([float(v) for v in theta0], dtype=DTYPE)
+    elif isinstance(theta0, np.ndarray) and theta0.dtype.kind in "iuf":
+        floating = theta0.dtype if theta0.dtype.kind == "f" else np.float64
+        theta0 = torch.from_numpy(np.array(theta0, dtype=floating))
+    check_real_tensor(theta0, "theta0")
+    check_matrix_shape(theta0, (-1,), "theta0")
+    _check_materialised(theta0, "theta0")
+    check_finite(theta0, "theta0")
+    if theta0.shape[0] < 1:
+        raise ValueError("theta0 must have at least one parameter, got shape [0]")
+    return theta0.detach()
+
+
+def as_covariance(sigma_start, theta0: Tensor) -> Tensor:
+    """Σ_start ``[D, D]`` in float64 on ``theta0``'s device, from one std σ (a number or a
+    0-d tensor: σ² I), ``[D]`` per-coordinate stds (diag(σ²)), or a ``[D, D]`` covariance,
+    each a tensor, a list or a numpy array (as pycma's ``sigma0`` and its per-coordinate
+    stds)."""
+    d = theta0.shape[0]
+    if _is_number(sigma_start):
+        sigma_start = torch.tensor(float(sigma_start), dtype=DTYPE)
+    elif isinstance(sigma_start, list | tuple | np.ndarray):
+        try:
+            sigma_start = torch.as_tensor(np.asarray(sigma_start, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"sigma_start must be a number, [D] stds or a [D, D] covariance, got "
+                f"{sigma_start!r}"
+            ) from None
+    check_real_tensor(sigma_start, "sigma_start")
+    _check_materialised(sigma_start, "sigma_start")
+    check_finite(sigma_start, "sigma_start")
+    sigma = sigma_start.detach().to(device=theta0.device, dtype=DTYPE)
+    if sigma.dim() < 2:
+        if sigma.dim() == 1 and sigma.shape[0] != d:
+            raise ValueError(
+                f"sigma_start must have shape [{d}, {d}] (a covariance), [{d}] (stds) or [] "
+                f"(one std), got {list(sigma.shape)}"
+            )
+        if bool((sigma <= 0).any()):
+            raise ValueError(f"sigma_start's stds must be positive, got {sigma.tolist()}")
+        return torch.diag_embed(sigma.square().expand(d))
+    if sigma.shape != (d, d):
+        raise ValueError(
+            f"sigma_start must have shape [{d}, {d}] (a covariance), [{d}] (stds) or [] "
+            f"(one std), got {list(sigma.shape)}"
+        )
+    check_positive_definite(sigma, "sigma_start")
+    return sigma
+
+
+def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
+    """``(lower [D], upper [D])`` in float64 on ``theta0``'s device from ``bounds`` =
+    ``(lower, upper)``, each a number, a list of D numbers or a ``[D]`` tensor (±inf: that
+    side is open), or ``None`` (no box). Raises ``ValueError`` unless lower < upper on every
+    axis and θ0 lies inside."""
+    if bounds is None:
+        return None
+    try:
+        low, high = bounds
+    except (TypeError, ValueError):
+        raise ValueError(f"bounds must be None or (lower, upper), got {bounds!r}") from None
+    d = theta0.shape[0]
+    box = []
+    for name, value in (("lower", low), ("upper", high)):
+        numbers_ = isinstance(value, list | tuple) and all(_is_number(v) for v in value)
+        if isinstance(value, bool) or not (isinstance(value, int | float | Tensor) or numbers_):
+            raise TypeError(
+                f"bounds' {name} must be a number, a list of D numbers or a [D] tensor, "
+                f"got {value!r}"
+            )
+        edge = torch.as_tensor(value, dtype=DTYPE, device=theta0.device)
+        if edge.dim() == 0:
+            edge = edge.expand(d)
+        check_matrix_shape(edge, (d,), f"bounds' {name}")
+        if bool(edge.isnan().any()):
+            raise ValueError(f"bounds' {name} contains NaN")
+        box.append(edge.clone())
+    lower, upper = box
+    if not bool((lower < upper).all()):
+        axis = int((lower >= upper).nonzero()[0])
+        raise ValueError(
+            f"bounds must have lower < upper on every axis; axis {axis} has "
+            f"[{float(lower[axis])}, {float(upper[axis])}]"
+        )
+    theta = theta0.to(DTYPE)
+    outside = (theta < lower) | (theta > upper)
+    if bool(outside.any()):
+        axis = int(outside.nonzero()[0])
+        raise ValueError(
+            f"theta0 must lie inside bounds; axis {axis}: {float(theta[axis])} is outside "
+            f"[{float(lower[axis])}, {float(upper[axis])}]"
+        )
+    return lower, upper
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+
+
+def _check_materialised(tensor: Tensor, name: str) -> None:
+    """Refuse a meta tensor (shape only, no values) naming the argument."""
+    if tensor.device.type == "meta":
+        raise ValueError(f"{name} is a meta tensor (no values): give it on a real device")

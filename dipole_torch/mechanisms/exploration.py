@@ -1,0 +1,163 @@
+"""How each policy's exploration covariance is set: from the DP posterior (the paper), or by
+the success rule of the (1+1)-CMA-ES (the default).
+
+Both classes have one interface (as pycma's step-size adaptations do, the "off" case being a
+class whose update does nothing): :meth:`observe` sees every told batch before its samples
+are archived, :meth:`starting_covariance` gives a new policy its exploration from its DP
+component's posterior covariance, and :attr:`keeps_covariance` says whether a policy's
+exploration lives on from clustering to clustering.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from dipole_torch.gaussian import DTYPE
+from dipole_torch.policy_set import PolicyField
+
+if TYPE_CHECKING:
+    from dipole_torch.search import PolicySearch, TellBatch
+
+__all__ = [
+    "PosteriorExploration",
+    "SuccessRule",
+    "SuccessRuleParameters",
+    "make_exploration",
+]
+
+
+class PosteriorExploration:
+    """The paper's: a policy explores with the θ-block of its DP component's posterior
+    covariance, set anew at every clustering ("the exploration noise of each component is
+    fit to the sampled points at every DP run")."""
+
+    keeps_covariance = False
+
+    def register(self, search: PolicySearch) -> None:
+        """Nothing to keep per policy."""
+
+    def observe(self, search: PolicySearch, batch: TellBatch) -> None:
+        """Nothing: the covariance changes only at clusterings."""
+
+    def starting_covariance(self, search: PolicySearch, covariances: Tensor) -> Tensor:
+        """``[..., D, D]`` the posterior covariances themselves."""
+        return covariances.clone()
+
+
+@dataclass(frozen=True)
+class SuccessRuleParameters:
+    """The constants of the success rule for D parameters (Igel, Suttorp & Hansen 2006,
+    "A computational efficient covariance matrix update and a (1+1)-CMA for evolution
+    strategies"), one a line as in pycma's ``CMAESParameters``.
+
+    Args:
+        dim: D.
+    """
+
+    dim: int
+
+    @property
+    def target_success(self) -> float:
+        """p_t: the success rate at which the covariance keeps its scale (the 1/5th rule's
+        (1+1) refinement, 2/11)."""
+        return 2.0 / 11.0
+
+    @property
+    def smoothing(self) -> float:
+        """c_p: the weight of the latest sample in the running success rate p̄ (1/12)."""
+        return 1.0 / 12.0
+
+    @property
+    def damping(self) -> float:
+        """d: the damping of the scale change, 1 + D/2."""
+        return 1.0 + self.dim / 2.0
+
+    @property
+    def path_rate(self) -> float:
+        """c_c: the learning rate of the evolution path, 2/(D + 2)."""
+        return 2.0 / (self.dim + 2.0)
+
+    @property
+    def covariance_rate(self) -> float:
+        """c_cov: the weight of the rank-one update along the path, 2/(D² + 6)."""
+        return 2.0 / (self.dim * self.dim + 6.0)
+
+
+class SuccessRule:
+    """Exploration that follows each policy's own samples, as in the (1+1)-CMA-ES.
+
+    A sample succeeds when it beats its policy's best kept one. A success moves the policy's
+    evolution path p towards the step x − μ, (1 − c_c) p + √(c_c (2 − c_c)) (x − μ), and adds
+    the rank-one term: Σ ← (1 − c_cov) Σ + c_cov p pᵀ. After every sample the running
+    success rate p̄ ← (1 − c_p) p̄ + c_p·[success] scales the covariance by
+    exp((p̄ − p_t) / (d (1 − p_t)))², never beyond Σ_start (a policy that keeps failing while
+    it grows would otherwise turn into random search). Exploration then shrinks
+    geometrically near an optimum and grows on a slope, and the covariance learns the
+    optimum's shape. The covariance is kept from clustering to clustering.
+
+    Per-policy fields: ``success`` (p̄, starting at p_t) and ``paths`` (p, starting at 0).
+
+    Args:
+        dim: D.
+    """
+
+    keeps_covariance = True
+
+    def __init__(self, dim: int):
+        self.parameters = SuccessRuleParameters(dim)
+
+    def register(self, search: PolicySearch) -> None:
+        search.policy_set.register("success", PolicyField(default=self.parameters.target_success))
+        search.policy_set.register("paths", PolicyField(shape=(search.dim,)))
+
+    def observe(self, search: PolicySearch, batch: TellBatch) -> None:
+        """The success rule on the batch's policy samples (before they are archived, so a
+        success is judged against the policy's kept samples)."""
+        if not search.started:
+            return
+        policies = search.policy_set
+        rows = batch.owner >= 0
+        policy = batch.owner[rows]
+        succeeded = batch.rewards[rows] > search.policy_best_rewards[policy]
+        constants = self.parameters
+        c_c, c_cov = constants.path_rate, constants.covariance_rate
+        step = batch.theta[rows] - policies.means[policy]
+        paths = policies.paths[policy]
+        paths = torch.where(
+            succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
+        )
+        covs = policies.covariances[policy]
+        rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
+        covs = torch.where(succeeded[:, None, None], rank_one, covs)
+        c = constants.smoothing
+        success = (1 - c) * policies.success[policy] + c * succeeded.to(DTYPE)
+        p_t = constants.target_success
+        factor = torch.exp((success - p_t) / (constants.damping * (1 - p_t)))
+        relative = search.relative_std(covs)
+        factor = torch.minimum(factor, 1.0 / relative.clamp_min(1e-300))
+        policies.paths, policies.success = policies.paths.clone(), policies.success.clone()
+        policies.covariances = policies.covariances.clone()
+        policies.paths[policy] = paths
+        policies.success[policy] = success
+        policies.covariances[policy] = covs * factor[:, None, None] ** 2
+
+    def starting_covariance(self, search: PolicySearch, covariances: Tensor) -> Tensor:
+        """``[..., D, D]`` Σ_start's shape at the spread of the posterior ``covariances``:
+        tr(Σ_start⁻¹ Σ_c)/D · Σ_start, at most Σ_start.
+
+        A component of a few points in D dimensions has a badly conditioned posterior
+        covariance; the rank-one update needs hundreds of samples to unlearn it, which
+        slowed the policies' convergence."""
+        whitened = torch.linalg.solve(search.sigma_start, covariances)
+        spread = whitened.diagonal(dim1=-2, dim2=-1).mean(-1).clamp(max=1.0)
+        return spread[..., None, None] * search.sigma_start
+
+
+def make_exploration(kind: str, dim: int) -> SuccessRule | PosteriorExploration:
+    """``"success"`` → :class:`SuccessRule`, ``"clustering"`` → :class:`PosteriorExploration`."""
+    return SuccessRule(dim) if kind == "success" else PosteriorExploration()

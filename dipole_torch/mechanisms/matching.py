@@ -1,0 +1,233 @@
+"""What a clustering does to the policies: which samples it sees, where its chain starts, and
+how its components become policies.
+
+* :class:`ReplaceMatching` — the paper: the IGMM's components *are* the policies. Every
+  clustering sees all kept samples, starts from the last clustering's components (at the
+  policies' current means) and its components replace the policies.
+* :class:`OverlapMatching` — the default: a policy lives on across clusterings (its
+  exploration, its success rate, whether it retired). A clustering sees the active policies'
+  samples and the scouts, starts with one component per active policy and one per scout, and
+  a component continues the old policy that owns most of its samples (matched greedily,
+  largest overlap first, :func:`match_by_overlap`); the other components become new
+  policies, the best first, while fewer than ``max_policies`` are active — or candidates for
+  the hill-valley test. Old policies left without a component were merged by the DP and are
+  dropped.
+
+The first clustering, of the n0 initial samples, makes its components the policies either way
+(:func:`adopt_components`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from dipole_torch.dp.state import DPMixtureState
+from dipole_torch.gaussian import DTYPE
+from dipole_torch.policy_set import PolicyField
+from dipole_torch.power import importance_sets
+
+if TYPE_CHECKING:
+    from dipole_torch.dipole import Dipole
+
+__all__ = ["OverlapMatching", "ReplaceMatching", "adopt_components", "match_by_overlap"]
+
+
+def adopt_components(search: Dipole, state: DPMixtureState) -> Tensor:
+    """Make the components of ``state`` (a clustering of every kept sample) the policies:
+    their θ-means, the exploration their posterior covariances give, their samples; then the
+    ``max_policies`` best are kept and each keeps its best M samples.
+
+    Returns:
+        ``[K]`` the component of each policy.
+    """
+    d = search.dim
+    search.dp_state = state
+    search.policy_set.reset(
+        state.means[:, :d].clone(),
+        search.exploration.starting_covariance(search, state.covariances[:, :d, :d]),
+    )
+    search.archive.owner = state.labels.clone()
+    kept = torch.ones(state.num_components, dtype=torch.bool, device=search.device)
+    max_policies = search.options.max_policies
+    if max_policies is not None:
+        best = search.policy_best_rewards
+        dropped = torch.argsort(best, descending=True, stable=True)[max_policies:]
+        if dropped.numel():
+            search.remove_policies(dropped)
+            kept[dropped] = False
+    keep_importance_sets(search)
+    return kept.nonzero().squeeze(-1)
+
+
+def keep_importance_sets(search: Dipole) -> None:
+    """Keep each policy's best M samples (scouts are dropped)."""
+    archive = search.archive
+    keep, _, _ = importance_sets(archive.owner, archive.rewards, search.num_policies, search.M)
+    archive.keep(keep)
+
+
+class ReplaceMatching:
+    """The paper's: every clustering's components replace the policies.
+
+    A policy remembers its component (field ``component``), so that the next clustering's
+    chain starts from the last components even after policies were dropped in between."""
+
+    def register(self, search: Dipole) -> None:
+        search.policy_set.register("component", PolicyField(default=-1, dtype=torch.long))
+
+    def clustered_rows(self, search: Dipole) -> Tensor:
+        """``[N]`` every kept sample."""
+        return torch.arange(len(search.archive), device=search.device)
+
+    def warm_start(self, search: Dipole, y: Tensor, rows: Tensor) -> DPMixtureState:
+        """The last clustering's components, at the policies' current means and with the
+        policies' samples; with scouts (which belong to no component), the partition of
+        the policies' samples and one singleton per scout instead."""
+        owner = search.archive.owner[rows]
+        component = search.policy_set.component
+        if bool((owner < 0).any()) or bool((component < 0).any()):
+            labels = _start_labels(owner, search.num_policies)
+            return DPMixtureState.from_labels(y, labels, search.dp_state.prior)
+        return DPMixtureState(
+            labels=owner.clone(),
+            means=torch.cat((search.policy_means, search.dp_state.means[component, -1:]), dim=1),
+            covariances=search.dp_state.covariances[component],
+            prior=search.dp_state.prior,
+        )
+
+    def apply(self, search: Dipole, rows: Tensor, y: Tensor, state: DPMixtureState) -> None:
+        """The components replace the policies."""
+        self.adopted(search, adopt_components(search, state))
+
+    def adopted(self, search: Dipole, components: Tensor) -> None:
+        """After :func:`adopt_components`: policy k is component ``components[k]``."""
+        search.policy_set.component = components
+
+
+class OverlapMatching:
+    """The default: components matched to the policies they continue; the rest become new
+    policies or hill-valley candidates."""
+
+    def register(self, search: Dipole) -> None:
+        """Nothing to keep per policy."""
+
+    def adopted(self, search: Dipole, components: Tensor) -> None:
+        """Nothing to record after the first clustering."""
+
+    def clustered_rows(self, search: Dipole) -> Tensor:
+        """``[N']`` the samples of the active policies and the scouts (retired policies keep
+        theirs out of it)."""
+        owner = search.archive.owner
+        return ((owner < 0) | search.active[owner.clamp_min(0)]).nonzero().squeeze(-1)
+
+    def warm_start(self, search: Dipole, y: Tensor, rows: Tensor) -> DPMixtureState:
+        """One component per active policy (its samples) and one per scout."""
+        old = search.archive.owner[rows]
+        active = search.active.nonzero().squeeze(-1)
+        compact = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
+        compact[active] = torch.arange(active.numel(), device=search.device)
+        labels = _start_labels(torch.where(old >= 0, compact[old.clamp_min(0)], old),
+                               active.numel())  # fmt: skip
+        return DPMixtureState.from_labels(y, labels, search.dp_state.prior)
+
+    def apply(self, search: Dipole, rows: Tensor, y: Tensor, state: DPMixtureState) -> None:
+        """Continue, create, vet or drop policies after a clustering ``state`` of ``y``
+        (the augmented samples ``rows`` of the archive)."""
+        d = search.dim
+        archive, policies = search.archive, search.policy_set
+        search.dp_state = state
+        labels = state.labels
+        k_new = state.num_components
+        old = archive.owner[rows]
+        active = policies.active.nonzero().squeeze(-1)
+        compact = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
+        compact[active] = torch.arange(active.numel(), device=search.device)
+        owned = old >= 0
+        continues = match_by_overlap(labels[owned], compact[old[owned]], k_new, active)
+        # New components, best sample first, while there is room.
+        rewards = archive.rewards[rows]
+        fresh = (continues < 0).nonzero().squeeze(-1)
+        component_best = torch.full((k_new,), -math.inf, dtype=DTYPE, device=search.device)
+        component_best = component_best.scatter_reduce(0, labels, rewards, "amax")
+        fresh = fresh[torch.argsort(component_best[fresh], descending=True, stable=True)]
+        max_policies = search.options.max_policies
+        room = (
+            fresh.numel()
+            if max_policies is None
+            else max(max_policies - int((continues >= 0).sum()), 0)
+        )
+        fresh = fresh[:room]
+        # The policies after it: retired ones, continued ones, then new ones.
+        keep_old = torch.cat(((~policies.active).nonzero().squeeze(-1), continues[continues >= 0]))
+        new_index = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
+        new_index[keep_old] = torch.arange(keep_old.numel(), device=search.device)
+        component_policy = torch.full((k_new,), -1, dtype=torch.long, device=search.device)
+        component_policy[continues >= 0] = new_index[continues[continues >= 0]]
+        vet = search.vetting.vets_new_policies and keep_old.numel() > 0
+        weights = y[:, -1]
+        new_means, new_covs, candidates = [], [], []
+        for c in fresh.tolist():
+            members = labels == c
+            w = weights[members]
+            mean = (w[:, None] * y[members, :d]).sum(0) / w.sum()  # eq. 7's average
+            covariance = search.exploration.starting_covariance(
+                search, state.covariances[c, :d, :d]
+            )
+            if vet:
+                # Its best sample, to be compared with the nearest policy's; its samples
+                # leave the data meanwhile.
+                best = int(torch.where(members, rewards, -math.inf).argmax())
+                candidates.append((mean, covariance, y[best, :d], rewards[best]))
+                continue
+            component_policy[c] = keep_old.numel() + len(new_means)
+            new_means.append(mean)
+            new_covs.append(covariance)
+        if candidates:
+            search.vetting.add_candidates(*(torch.stack(x) for x in zip(*candidates, strict=True)))
+        policies.index(keep_old)
+        if new_means:
+            policies.extend(torch.stack(new_means), torch.stack(new_covs))
+        # Re-own the samples: retired policies' stay, clustered ones follow their component
+        # (a component that became no policy loses its samples).
+        owner = new_index[archive.owner.clamp_min(0)]
+        owner[rows] = component_policy[labels]
+        archive.owner = owner
+        archive.keep(owner >= 0)
+        keep_importance_sets(search)
+
+
+def match_by_overlap(labels: Tensor, old: Tensor, num_components: int, policies: Tensor) -> Tensor:
+    """``[C]`` the old policy each new component continues (−1: none), matched greedily,
+    largest overlap first: a component continues the policy that owns most of its samples
+    among those not yet matched.
+
+    Args:
+        labels: ``[N]`` new component of each sample that an old policy owned.
+        old: ``[N]`` the old policy's position in ``policies`` of each such sample.
+        num_components: C.
+        policies: ``[P]`` the old policies' indices.
+    """
+    overlap = torch.zeros(num_components, policies.numel(), dtype=torch.long, device=labels.device)
+    overlap.index_put_((labels, old), torch.ones_like(labels), accumulate=True)
+    continues = torch.full((num_components,), -1, dtype=torch.long, device=labels.device)
+    remaining = overlap.clone()
+    while bool((remaining > 0).any()):
+        flat = int(remaining.argmax())
+        c, j = divmod(flat, remaining.shape[1])
+        continues[c] = int(policies[j])
+        remaining[c] = 0
+        remaining[:, j] = 0
+    return continues
+
+
+def _start_labels(owner: Tensor, num_policies: int) -> Tensor:
+    """``[N]`` warm-start labels: a policy's samples share its label, each scout (owner −1)
+    gets one of its own after the policies'."""
+    scouts = owner < 0
+    labels = owner.clone()
+    labels[scouts] = num_policies + torch.arange(int(scouts.sum()), device=owner.device)
+    return labels

@@ -1,0 +1,66 @@
+"""Which rows an ask holds after the first batch: the policies whose turn it is, and scouts.
+
+* Turn-taking (``max_sampled``): with more active policies than that, only the ones with the
+  best kept returns draw a sample; the others wait (still among the policies, their
+  exploration unchanged) until a policy ahead of them retires or is dropped, or a clustering
+  reshapes the policies. Spread over every policy at once, a budget of a few hundred trials
+  converged none of them on most 5-D landscapes with 8 optima; in turn, the first ones
+  converge and the later ones still get theirs.
+* Scouts (``explore``): draws from N(θ0, Σ_start) that belong to no policy yet, ``explore``
+  per policy sample on average; the clustering puts a scout that lies on another hill in a
+  component of its own, a candidate policy. When every policy has retired, the next ask is
+  a fresh n0 of them: a restart (an empty ask would end the run).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from dipole_torch.archive import NO_POLICY
+from dipole_torch.sampling import draw_gaussian
+
+if TYPE_CHECKING:
+    from dipole_torch.search import PolicySearch
+
+__all__ = ["Scouting"]
+
+
+class Scouting:
+    """Turn-taking among the active policies and scouts from the start distribution.
+
+    Args:
+        explore: scouts per policy sample, in [0, 1] (0: none).
+        max_sampled: policies sampled in one ask at most (``None``: every active one).
+    """
+
+    def __init__(self, explore: float, max_sampled: int | None):
+        self.explore = float(explore)
+        self.max_sampled = None if max_sampled is None else int(max_sampled)
+
+    def sampled_policies(self, search: PolicySearch) -> Tensor:
+        """``[K_sampled]`` the active policies that draw a sample at the next ask: all of
+        them, or the ``max_sampled`` with the best kept returns (ties: the lower index)."""
+        index = search.active.nonzero().squeeze(-1)
+        if self.max_sampled is None or index.numel() <= self.max_sampled:
+            return index
+        best = search.policy_best_rewards[index]
+        ahead = torch.argsort(best, descending=True, stable=True)[: self.max_sampled]
+        return index[ahead].sort().values
+
+    def scouts(self, search: PolicySearch, sampled: int) -> int:
+        """Scouts in the next ask, whose ``sampled`` policies draw a sample each: ``explore``
+        per policy sample on average (the running count of policy samples decides, so the
+        fraction holds over the run); a fresh ``n0`` when no policy is active."""
+        if not bool(search.active.any()):
+            return search.n0
+        before = search.policy_samples
+        return math.floor(self.explore * (before + sampled)) - math.floor(self.explore * before)
+
+    def draw_scouts(self, search: PolicySearch, count: int) -> tuple[Tensor, Tensor]:
+        """``count`` scouts from N(θ0, Σ_start): ``([count, D], owner [count])``."""
+        theta = draw_gaussian(search.theta0, search.sigma_start, (count,), search.generator)
+        return theta, torch.full_like(theta[:, 0], NO_POLICY, dtype=torch.long)

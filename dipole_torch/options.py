@@ -1,0 +1,215 @@
+"""DIPOLE's options as one validated object; :meth:`DipoleOptions.paper` is the paper's set."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+from dipole_torch.reward import RewardRange, check_reward_range
+from dipole_torch.validation import check_choice, check_count, check_flag, check_real
+
+__all__ = ["DipoleOptions"]
+
+
+@dataclass(frozen=True)
+class DipoleOptions:
+    """Every option of :class:`~dipole_torch.Dipole`, with its default (the library's variant).
+
+    Each option is checked when the object is built, with a message naming it; combinations
+    that cannot run together are refused there too, naming the conflict. ``replace(**changes)``
+    gives a checked copy. :meth:`paper` is the paper's set.
+
+    =====================  ==============================  ===================================
+    option                 default                         the paper (:meth:`paper`)
+    =====================  ==============================  ===================================
+    ``reward_range``       ``None``: min–max of the kept   ``"positive"`` (returns used as
+                           returns (any units)             they are), or a fixed range
+    ``importance``         ``"policy"``: every policy      ``"global"``: the best K·M samples
+                           keeps its own best M            overall
+    ``exploration``        ``"success"``: the success      ``"clustering"``: the θ-block of
+                           rule scales each policy's       the policy's DP component's
+                           covariance                      posterior covariance
+    ``matching``           ``"overlap"``: a component      ``"replace"``: every clustering's
+                           continues the policy owning     components replace the policies
+                           most of its samples
+    ``explore``            0.05 scouts per policy sample   0
+    ``hill_valley``        probe new and neighbouring      no
+                           policies
+    ``max_policies``       8 active policies at most       no limit
+    ``max_sampled``        4 policies sampled in an        no limit
+                           iteration (the others wait)
+    ``retire_std``         1e-3: stop sampling a           0 (never)
+                           converged policy
+    ``merge_radius``       1: drop duplicate policies      0 (never)
+    ``auxiliary``          ``"auto"``                      ``"fresh"`` (Algorithm 8)
+    =====================  ==============================  ===================================
+
+    Attributes:
+        alpha: DP concentration α > 0 (paper: 1).
+        m: auxiliary components of Neal's Algorithm 8 (paper: 10).
+        M: importance-set size of PoWER (paper: 5).
+        n0: initial samples from N(θ0, Σ_start); None: 2·M.
+        cluster_every: iterations between DP clusterings (paper: "every M steps"); None: M.
+        sweeps: Gibbs sweeps per clustering, warm-started.
+        initial_sweeps: Gibbs sweeps of the first clustering (from one component).
+        reward_range: None (the kept returns' min–max, any units), (low, high) (a fixed map)
+            or "positive" (positive returns used as weights); see dipole_torch.RewardScale.
+        reward_floor: smallest reward weight, in (0, 1).
+        regularization: DP component covariance floor, a fraction of diag(Σ_start).
+        reward_weighted: eq. 6 (True) or plain eq. 5 (False, an ablation).
+        prior_df: ν0 of the inverse-Wishart prior, > D + 2; None: D + 3.
+        importance: "policy" (each policy's own best M) or "global" (the best K·M overall).
+        exploration: "success" (success rule per policy) or "clustering" (DP posterior).
+        matching: "overlap" (a component continues the policy owning most of its samples; the
+            others become new policies) or "replace" (the components replace the policies).
+        explore: scouts from N(θ0, Σ_start) per policy sample, in [0, 1].
+        hill_valley: vet new policies and neighbouring ones by probes between them.
+        pair_points: probes between two neighbouring policies (1: the midpoint).
+        max_policies: active policies at most (None: no limit).
+        max_sampled: policies sampled in one iteration at most, the best ones (None: all).
+        retire_std: retire a policy once its exploration std is below this times Σ_start's.
+        merge_radius: drop a policy within this many exploration stds of another (0: never).
+        auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
+            draws, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
+    """
+
+    alpha: float = 1.0
+    m: int = 10
+    M: int = 5
+    n0: int | None = None
+    cluster_every: int | None = None
+    sweeps: int = 5
+    initial_sweeps: int = 20
+    reward_range: RewardRange = None
+    reward_floor: float = 1e-3
+    regularization: float = 1e-2
+    reward_weighted: bool = True
+    prior_df: float | None = None
+    importance: str = "policy"
+    exploration: str = "success"
+    matching: str = "overlap"
+    explore: float = 0.05
+    hill_valley: bool = True
+    pair_points: int = 1
+    max_policies: int | None = 8
+    max_sampled: int | None = 4
+    retire_std: float = 1e-3
+    merge_radius: float = 1.0
+    auxiliary: str = "auto"
+
+    def __post_init__(self) -> None:
+        for name, check in _CHECKS.items():
+            check(getattr(self, name), _NAMES.get(name, name))
+        if self.reward_range is not None and not isinstance(self.reward_range, str | tuple):
+            # (a config's list: the pair it stands for)
+            object.__setattr__(self, "reward_range", tuple(float(v) for v in self.reward_range))
+        if self.matching == "replace" and self.retire_std > 0:
+            raise ValueError(
+                f"retire_std={self.retire_std} needs matching='overlap': with "
+                "matching='replace' every clustering makes each component a new, active "
+                "policy, so a retired policy would be sampled again (use retire_std=0)"
+            )
+
+    @classmethod
+    def paper(cls, **changes: Any) -> DipoleOptions:
+        """The paper's DIPOLE (Algorithm 2): the best K·M samples kept overall, exploration
+        from the DP posterior, the components as the policies, no scouts, no retirement, no
+        merging, positive returns used as weights (``reward_range="positive"``), then
+        ``changes``."""
+        return cls(**(PAPER | changes))
+
+    def replace(self, **changes: Any) -> DipoleOptions:
+        """A checked copy with ``changes``; an unknown name raises ``TypeError`` naming it."""
+        unknown = sorted(set(changes) - {f.name for f in fields(self)})
+        if unknown:
+            raise TypeError(f"unknown DIPOLE option(s) {', '.join(map(repr, unknown))}")
+        return dataclasses.replace(self, **changes)
+
+
+PAPER: dict[str, Any] = dict(
+    importance="global",
+    exploration="clustering",
+    matching="replace",
+    explore=0.0,
+    max_policies=None,
+    max_sampled=None,
+    retire_std=0.0,
+    merge_radius=0.0,
+    hill_valley=False,
+    auxiliary="fresh",
+    reward_range="positive",
+)
+
+
+def _positive_real(value, name: str) -> None:
+    check_real(value, name)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be positive and finite, got {value!r}")
+
+
+def _non_negative(value, name: str) -> None:
+    check_real(value, name)
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be non-negative and finite, got {value!r}")
+
+
+def _unit_interval(value, name: str) -> None:
+    check_real(value, name)
+    if not (math.isfinite(value) and 0 <= value <= 1):
+        raise ValueError(f"{name} must lie in [0, 1], got {value!r}")
+
+
+def _floor(value, name: str) -> None:
+    check_real(value, name)
+    if not 0.0 < value < 1.0:
+        raise ValueError(f"{name} must lie in (0, 1), got {value!r}")
+
+
+def _optional_count(value, name: str) -> None:
+    check_count(value, name, optional=True)
+
+
+def _optional_real(value, name: str) -> None:
+    if value is not None:
+        _positive_real(value, name)
+
+
+def _choice(*choices: str):
+    return lambda value, name: check_choice(value, choices, name)
+
+
+# How an error names an option whose letter alone says little.
+_NAMES = {
+    "alpha": "alpha (DP concentration)",
+    "m": "m (auxiliary components)",
+    "M": "M (importance-set size)",
+    "n0": "n0 (initial samples)",
+}
+
+_CHECKS = {
+    "alpha": _positive_real,
+    "m": check_count,
+    "M": check_count,
+    "n0": _optional_count,
+    "cluster_every": _optional_count,
+    "sweeps": check_count,
+    "initial_sweeps": check_count,
+    "reward_range": check_reward_range,
+    "reward_floor": _floor,
+    "regularization": _non_negative,
+    "reward_weighted": check_flag,
+    "prior_df": _optional_real,
+    "importance": _choice("policy", "global"),
+    "exploration": _choice("success", "clustering"),
+    "matching": _choice("overlap", "replace"),
+    "explore": _unit_interval,
+    "hill_valley": check_flag,
+    "pair_points": check_count,
+    "max_policies": _optional_count,
+    "max_sampled": _optional_count,
+    "retire_std": _non_negative,
+    "merge_radius": _non_negative,
+    "auxiliary": _choice("auto", "fresh", "reuse"),
+}

@@ -1,0 +1,151 @@
+"""Every per-policy tensor of a policy search, in one object that re-indexes them together."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["PolicyField", "PolicySet"]
+
+
+@dataclass(frozen=True)
+class PolicyField:
+    """A per-policy tensor that a mechanism keeps (e.g. the success rule's success rate):
+    its trailing shape, dtype and the value a new or restarted policy starts with."""
+
+    shape: tuple[int, ...] = ()
+    default: float = 0.0
+    dtype: torch.dtype = torch.float64
+
+
+class PolicySet:
+    """K policies in rows: ``means [K, D]``, ``covariances [K, D, D]`` (each policy's
+    exploration), ``active [K]`` (whether it is still sampled), and the fields mechanisms
+    register (:meth:`register`, e.g. ``success [K]`` and ``paths [K, D]``).
+
+    Every tensor follows the same rows: :meth:`index` keeps a subset of the policies in all of
+    them, :meth:`extend` appends new policies (fields at their defaults), :meth:`reset`
+    replaces them all. A new per-policy tensor is one :meth:`register` call.
+
+    Args:
+        means: ``[K, D]`` policy means.
+        covariances: ``[K, D, D]`` exploration covariances.
+    """
+
+    CORE = ("means", "covariances", "active")
+
+    def __init__(self, means: Tensor, covariances: Tensor):
+        object.__setattr__(self, "_fields", {})
+        object.__setattr__(self, "_tensors", {})
+        self.means = means
+        self.covariances = covariances
+        self.active = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+
+    # ------------------------------------------------------------------ fields
+    def register(self, name: str, field: PolicyField) -> None:
+        """Add a per-policy tensor ``name`` (every policy at ``field.default``)."""
+        if name in self.CORE or name in self._fields:
+            raise ValueError(f"policy field {name!r} exists already")
+        self._fields[name] = field
+        self._tensors[name] = self._default(field, len(self))
+
+    def _default(self, field: PolicyField, n: int) -> Tensor:
+        return torch.full(
+            (n, *field.shape), field.default, dtype=field.dtype, device=self.means.device
+        )
+
+    def __getattr__(self, name: str) -> Tensor:
+        try:
+            return self._tensors[name]
+        except KeyError:
+            raise AttributeError(f"PolicySet has no field {name!r}") from None
+
+    def __setattr__(self, name: str, value: Tensor) -> None:
+        if name not in self.CORE and name not in self._fields:
+            raise AttributeError(f"PolicySet has no field {name!r} (register it first)")
+        self._tensors[name] = value
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        """The registered fields' names (the core tensors excluded)."""
+        return tuple(self._fields)
+
+    def __len__(self) -> int:
+        return int(self._tensors["means"].shape[0])
+
+    # ------------------------------------------------------------------ rows
+    def index(self, keep: Tensor) -> None:
+        """Keep the policies ``keep`` (``[K]`` bool, or indices, in their new order) in
+        every tensor."""
+        for name, value in self._tensors.items():
+            self._tensors[name] = value[keep]
+
+    def extend(self, means: Tensor, covariances: Tensor, **values: Tensor) -> None:
+        """Append n policies ``means [n, D]``, ``covariances [n, D, D]``, active, with
+        ``values`` for their fields (the others at their defaults)."""
+        n = means.shape[0]
+        new = {
+            "means": means,
+            "covariances": covariances,
+            "active": torch.ones(n, dtype=torch.bool, device=means.device),
+        }
+        for name, field in self._fields.items():
+            new[name] = values.pop(name) if name in values else self._default(field, n)
+        if values:
+            raise ValueError(f"unknown policy field(s) {sorted(values)}")
+        for name, value in new.items():
+            self._tensors[name] = torch.cat((self._tensors[name], value))
+
+    def reset(self, means: Tensor, covariances: Tensor) -> None:
+        """Replace every policy by ``means [K, D]``, ``covariances [K, D, D]``, all active,
+        their fields at their defaults."""
+        self.means, self.covariances = means, covariances
+        self.active = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+        for name, field in self._fields.items():
+            self._tensors[name] = self._default(field, means.shape[0])
+
+    def reset_fields(self, rows: Tensor) -> None:
+        """The fields of the policies ``rows [K]`` (bool) back to their defaults."""
+        for name, field in self._fields.items():
+            value = self._tensors[name]
+            mask = rows.reshape(-1, *([1] * len(field.shape)))
+            self._tensors[name] = torch.where(mask, field.default, value)
+
+    # ------------------------------------------------------------------ checkpoints
+    KEYS = {"means": "policy_means", "covariances": "policy_covariances", "active": "active"}
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {self.KEYS.get(name, name): value.clone() for name, value in self._tensors.items()}
+
+    def load_state_dict(self, state: dict, device: torch.device) -> None:
+        """Load every tensor (state keys ``policy_means``, ``policy_covariances``, ``active``
+        and the field names); raises ``ValueError`` naming a key whose shape does not fit. A
+        field missing from ``state`` (a checkpoint from before a mechanism kept it) starts at
+        its default."""
+        d = self.means.shape[1]
+        means = state["policy_means"]
+        if not isinstance(means, Tensor) or means.dim() != 2 or means.shape[1] != d:
+            raise ValueError(
+                f"state_dict['policy_means'] must have shape [K, {d}], got "
+                f"{list(getattr(means, 'shape', [type(means).__name__]))}"
+            )
+        k = means.shape[0]
+        shapes = {"means": (k, d), "covariances": (k, d, d), "active": (k,)}
+        shapes |= {name: (k, *field.shape) for name, field in self._fields.items()}
+        loaded = {}
+        for name, shape in shapes.items():
+            key = self.KEYS.get(name, name)
+            if name in self._fields and key not in state:
+                loaded[name] = self._default(self._fields[name], k)
+                continue
+            value = state[key]
+            if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+                raise ValueError(
+                    f"state_dict[{key!r}] must have shape {list(shape)}, got "
+                    f"{list(getattr(value, 'shape', [type(value).__name__]))}"
+                )
+            dtype = torch.bool if name == "active" else self._tensors[name].dtype
+            loaded[name] = value.to(device=device, dtype=dtype)
+        self._tensors.update(loaded)

@@ -1,0 +1,52 @@
+"""Where a policy search stands: the best evaluation and every policy."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["SearchResult"]
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """Where a run stands (pycma's ``result``): the best evaluation and every policy.
+
+    Attributes:
+        best_theta: ``[D]`` the best parameters evaluated so far.
+        best_reward: their return.
+        trials: reward evaluations told so far.
+        iterations: tells after the first batch.
+        means: ``[K, D]`` the policies' means.
+        covariances: ``[K, D, D]`` their exploration covariances.
+        best_rewards: ``[K]`` each policy's best kept return (−inf: none kept).
+        active: ``[K]`` whether each policy is still sampled.
+        converged: ``[K]`` whether each policy's exploration has converged.
+    """
+
+    best_theta: Tensor
+    best_reward: float
+    trials: int
+    iterations: int
+    means: Tensor
+    covariances: Tensor
+    best_rewards: Tensor
+    active: Tensor
+    converged: Tensor
+
+    def __str__(self) -> str:
+        lines = [
+            f"best return {self.best_reward:.6g} after {self.trials} trials "
+            f"({self.iterations} iterations); {self.means.shape[0]} policies:"
+        ]
+        order = torch.argsort(self.best_rewards, descending=True, stable=True).tolist()
+        for rank, k in enumerate(order):
+            state = "converged" if self.converged[k] else "active" if self.active[k] else "waiting"
+            mean = ", ".join(f"{v:.4g}" for v in self.means[k].tolist())
+            lines.append(
+                f"  {rank + 1}. theta = [{mean}]  best return {float(self.best_rewards[k]):.6g}"
+                f"  ({state})"
+            )
+        return "\n".join(lines)

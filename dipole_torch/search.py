@@ -1,0 +1,498 @@
+"""The ask/tell policy search that DIPOLE and PoWER share.
+
+pycma's interface: ``ask()`` proposes policy parameters, the caller evaluates them however it
+likes (batched simulator, gymnasium env, real robot) and ``tell()`` reports the returns. The
+optimizer never calls the task and needs no range of the returns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from dipole_torch.archive import NO_POLICY, PROBE, SampleArchive
+from dipole_torch.gaussian import DTYPE
+from dipole_torch.gaussian_mixture import GaussianMixture
+from dipole_torch.inputs import Bounds, as_covariance, as_theta0, make_box
+from dipole_torch.policy_set import PolicySet
+from dipole_torch.result import SearchResult
+from dipole_torch.reward import RewardRange, check_rewards, make_reward_scale
+from dipole_torch.sampling import draw_gaussian
+from dipole_torch.validation import (
+    check_count,
+    check_finite,
+    check_generator,
+    check_matrix_shape,
+)
+
+__all__ = ["NO_POLICY", "PROBE", "PolicySearch", "TellBatch"]
+
+
+@dataclass(frozen=True)
+class TellBatch:
+    """What one ``tell`` reports, as the optimizer's mechanisms see it (float64, on the
+    optimizer's device): ``theta [B, D]``, ``rewards [B]``, ``owner [B]`` (see
+    :mod:`dipole_torch.archive`: a policy, a scout, a probe) and whether the ask was ``cut``
+    to its first B rows."""
+
+    theta: Tensor
+    rewards: Tensor
+    owner: Tensor
+    cut: bool
+
+
+class PolicySearch:
+    """Ask/tell over a :class:`~dipole_torch.policy_set.PolicySet` and a
+    :class:`~dipole_torch.archive.SampleArchive`: proposals, the transactional tell, the box,
+    best-so-far, results and checkpoints. Subclasses decide what an ask proposes and what a
+    tell changes (:meth:`_propose`, :meth:`_observe`, :meth:`_after_initial_batch`,
+    :meth:`_iterate`).
+
+    Internal maths run in float64 on ``theta0``'s device; ``ask`` returns ``theta0``'s dtype
+    (float64 for a list). ``tell`` is transactional: if it raises, the optimizer is exactly as
+    before the call.
+
+    With ``bounds = (lower, upper)`` every asked row is projected onto the box (each
+    coordinate clipped), a told row outside it raises, and the policy means stay inside.
+    Clipping, not resampling or reflection, so that an optimum on the boundary (a joint
+    limit) is sampled exactly; θ0 must lie in the box.
+
+    Args:
+        theta0: ``[D]`` initial policy: a floating tensor, a list or a numpy array.
+        sigma_start: initial exploration: one std σ (σ² I), ``[D]`` stds or a ``[D, D]``
+            covariance.
+        M: importance-set size (a checked positive integer).
+        n0: initial samples (a checked positive integer).
+        reward_range: ``None``, ``(low, high)`` or ``"positive"`` (see
+            :class:`dipole_torch.RewardScale`).
+        reward_floor: smallest reward weight.
+        generator: ``torch.Generator`` for every draw (default: seeded from torch's global
+            generator, as torch's own samplers follow ``torch.manual_seed``).
+        bounds: ``(lower, upper)``, each a number, a list of D numbers or a ``[D]`` tensor
+            (±inf leaves a side open), or ``None``.
+
+    Attributes:
+        trials: reward evaluations told so far (the x-axis of the paper's plots).
+        iteration: tells after the first batch.
+        policy_samples: trials spent on policy samples after the first batch.
+        last_rewards: ``[K]`` each policy's latest return: the returns of the latest told
+            batch's policy samples (the whole batch after the first tell), then, for each
+            policy that drew no sample in it, the mean return of its kept samples.
+    """
+
+    def __init__(
+        self,
+        theta0,
+        sigma_start,
+        M: int,
+        n0: int,
+        reward_range: RewardRange,
+        reward_floor: float,
+        generator: torch.Generator | None,
+        bounds: Bounds,
+    ):
+        theta0 = as_theta0(theta0)
+        sigma = as_covariance(sigma_start, theta0)
+        check_generator(generator)
+        self.dtype = theta0.dtype
+        self.device = theta0.device
+        self.theta0 = theta0.to(DTYPE)
+        self.sigma_start = sigma
+        self.box = make_box(bounds, self.theta0)
+        self.M = int(M)
+        self.n0 = int(n0)
+        self.reward_scale = make_reward_scale(reward_range, reward_floor)
+        if generator is None:
+            generator = torch.Generator(self.device)
+            generator.manual_seed(int(torch.randint(0, 2**62, (1,))))
+        self.generator = generator
+        self.archive = SampleArchive(self.dim, self.device)
+        self.policy_set = PolicySet(self.theta0[None].clone(), self.sigma_start[None].clone())
+        self.trials = 0
+        self.iteration = 0
+        self.policy_samples = 0
+        self.last_rewards = torch.empty(0, dtype=DTYPE, device=self.device)
+        self._best_theta = self.theta0.clone()
+        self._best_reward = -math.inf
+        self._pending: Tensor | None = None
+        self._pending_owner: Tensor | None = None
+
+    # ------------------------------------------------------------------ views
+    @property
+    def dim(self) -> int:
+        return int(self.theta0.shape[0])
+
+    @property
+    def num_policies(self) -> int:
+        return len(self.policy_set)
+
+    @property
+    def started(self) -> bool:
+        return self.trials > 0
+
+    @property
+    def policy_means(self) -> Tensor:
+        """``[K, D]`` the policies' means (float64)."""
+        return self.policy_set.means
+
+    @property
+    def policy_covariances(self) -> Tensor:
+        """``[K, D, D]`` the policies' exploration covariances (float64)."""
+        return self.policy_set.covariances
+
+    @property
+    def active(self) -> Tensor:
+        """``[K]`` which policies are still sampled."""
+        return self.policy_set.active
+
+    @property
+    def thetas(self) -> Tensor:
+        """``[N, D]`` the kept samples."""
+        return self.archive.thetas
+
+    @property
+    def rewards(self) -> Tensor:
+        """``[N]`` the kept samples' returns."""
+        return self.archive.rewards
+
+    @property
+    def owner(self) -> Tensor:
+        """``[N]`` the policy owning each kept sample (−1: a scout of no policy yet)."""
+        return self.archive.owner
+
+    @property
+    def policy_best_rewards(self) -> Tensor:
+        """``[K]`` the best return among each policy's kept samples (−inf: none)."""
+        return self.archive.per_policy("amax", self.num_policies)
+
+    @property
+    def converged(self) -> Tensor:
+        """``[K]`` whether each policy's exploration has converged (PoWER's never does: its
+        exploration is fixed or follows a schedule)."""
+        return torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
+
+    def relative_std(self, covariances: Tensor | None = None) -> Tensor:
+        """``[K]`` each policy's largest exploration std relative to Σ_start's, per axis
+        (or that of ``covariances [..., D, D]``)."""
+        covs = self.policy_covariances if covariances is None else covariances
+        ratio = covs.diagonal(dim1=-2, dim2=-1) / self.sigma_start.diagonal()
+        return ratio.amax(-1).sqrt()
+
+    @property
+    def policies(self) -> GaussianMixture:
+        """The current policies as a mixture over θ: component k is N(θ_k, Σ_k), weighted by
+        the number of kept samples it owns (at least 1), in ``theta0``'s dtype.
+
+        The covariances are factorised in float64 before the cast: a converged policy's
+        exploration can be too ill-conditioned for a float32 Cholesky."""
+        weights = self.archive.counts(self.num_policies).to(DTYPE).clamp_min(1.0)
+        mixture = GaussianMixture(
+            weights, self.policy_means, self.policy_covariances, validate_args=False
+        )
+        if self.dtype != DTYPE:
+            mixture.scale_tril  # noqa: B018 (factorised here, carried by .to())
+        return mixture.to(self.dtype)
+
+    def best(self) -> tuple[Tensor, float]:
+        """The best parameters evaluated so far and their return: ``([D], float)``."""
+        return self._best_theta.to(self.dtype), self._best_reward
+
+    def stop(self, max_trials: int | None = None) -> dict[str, str]:
+        """The stopping criteria met (pycma's ``stop()``): empty while the run should go on.
+
+        ``"max_trials"`` once ``trials >= max_trials`` (a budget you pass), ``"converged"``
+        once every policy's exploration has converged. A run may go on after either."""
+        met = {}
+        if max_trials is not None and self.trials >= max_trials:
+            met["max_trials"] = f"{self.trials} trials of {max_trials}"
+        if self.started and self.num_policies and bool(self.converged.all()):
+            met["converged"] = f"every one of the {self.num_policies} policies"
+        return met
+
+    @property
+    def result(self) -> SearchResult:
+        """Where the run stands: the best evaluation and every policy (see
+        :class:`SearchResult`; ``print`` it for a summary)."""
+        best_theta, best_reward = self.best()
+        return SearchResult(
+            best_theta=best_theta,
+            best_reward=best_reward,
+            trials=self.trials,
+            iterations=self.iteration,
+            means=self.policy_means.to(self.dtype),
+            covariances=self.policy_covariances.to(self.dtype),
+            best_rewards=self.policy_best_rewards,
+            active=self.active.clone(),
+            converged=self.converged,
+        )
+
+    # ------------------------------------------------------------------ ask
+    @property
+    def batch_size(self) -> int:
+        """Rows the next :meth:`ask` returns (before ``max_rows``): known before the draw,
+        so a run can decide whether the next batch fits its trial budget."""
+        return self.n0 if not self.started else self._batch_size()
+
+    def _batch_size(self) -> int:
+        return int(self._sampled_policies().numel())
+
+    def ask(self, max_rows: int | None = None) -> Tensor:
+        """Policy parameters to evaluate next.
+
+        Args:
+            max_rows: return only the first ``max_rows`` rows of the batch (e.g. to end a run
+                exactly at a trial budget); the draws are those of the whole batch, and
+                :meth:`tell` takes the rows returned.
+
+        Returns:
+            ``[n0, D]`` draws from N(θ0, Σ_start) on the first call; afterwards ``[B, D]``:
+            one row per sampled policy, drawn from its Gaussian, then any exploration rows
+            (see :attr:`asked_owner`). Asking again before telling discards the previous
+            proposal.
+        """
+        check_count(max_rows, "max_rows", optional=True)
+        if not self.started:
+            theta = draw_gaussian(self.theta0, self.sigma_start, (self.n0,), self.generator)
+            owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
+        else:
+            theta, owner = self._propose()
+        theta = self._into_box(theta)
+        self._pending, self._pending_owner = theta, owner
+        if max_rows is not None:
+            theta = theta[: int(max_rows)]
+        return theta.to(self.dtype)
+
+    @property
+    def asked_owner(self) -> Tensor | None:
+        """``[B]`` the policy each row of the pending ask belongs to (−1: a scout of no
+        policy yet, −2: a probe; see :mod:`dipole_torch.archive`)."""
+        return self._pending_owner
+
+    def _propose(self) -> tuple[Tensor, Tensor]:
+        """The next batch after the first: ``(theta [B, D], owner [B])``. Here one sample
+        per sampled policy."""
+        index = self._sampled_policies()
+        if index.numel() == self.num_policies:
+            means, covs = self.policy_means, self.policy_covariances
+        else:
+            means, covs = self.policy_means[index], self.policy_covariances[index]
+        return draw_gaussian(means, covs, (), self.generator), index
+
+    def _sampled_policies(self) -> Tensor:
+        """``[K_sampled]`` the policies that draw a sample at the next ask: the active ones."""
+        return self.active.nonzero().squeeze(-1)
+
+    def _check_in_box(self, theta: Tensor) -> None:
+        """Raise ``ValueError`` naming the first told row outside the box (compared in the
+        told dtype, so an asked row rounded to float32 still counts as inside)."""
+        if self.box is None:
+            return
+        lower, upper = (edge.to(device=theta.device, dtype=theta.dtype) for edge in self.box)
+        outside = (theta < lower) | (theta > upper)
+        if bool(outside.any()):
+            row, axis = (int(i) for i in outside.nonzero()[0])
+            raise ValueError(
+                f"theta row {row} lies outside bounds on axis {axis}: "
+                f"{float(theta[row, axis])} not in [{float(lower[axis])}, {float(upper[axis])}]"
+            )
+
+    def _into_box(self, theta: Tensor) -> Tensor:
+        """``theta [..., D]`` projected onto the box; unchanged without ``bounds``."""
+        if self.box is None:
+            return theta
+        return torch.minimum(torch.maximum(theta, self.box[0]), self.box[1])
+
+    # ------------------------------------------------------------------ tell
+    def tell(self, theta: Tensor, rewards: Tensor) -> None:
+        """Report the returns of the parameters from the last :meth:`ask`.
+
+        Args:
+            theta: ``[B, D]`` the asked parameters (row i as asked), or only the first
+                ``n < B`` rows of the ask (e.g. to end a run exactly at a trial budget).
+            rewards: ``[B]`` (or ``[n]``) their returns; all finite (a NaN or inf raises
+                before anything changes), inside ``reward_range`` when a fixed one was given.
+
+        If anything raises, the optimizer is left exactly as it was before the call.
+        """
+        if self._pending is None:
+            raise RuntimeError("tell() called without a preceding ask()")
+        asked, d = self._pending.shape
+        check_matrix_shape(theta, (-1, d), "theta")
+        if not 1 <= theta.shape[0] <= asked:
+            raise ValueError(
+                f"theta has {theta.shape[0]} rows: tell() takes the {asked} rows of the last "
+                f"ask, or its first n (1 <= n <= {asked})"
+            )
+        check_finite(theta, "theta")
+        self._check_in_box(theta)
+        rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
+        self.reward_scale.validate(rewards)  # before any state changes
+        theta = self._into_box(theta.detach().to(device=self.device, dtype=DTYPE))
+        snapshot = self.state_dict()
+        try:
+            self._tell(theta, rewards)
+            if self.box is not None:
+                # Eq. 7's means are convex combinations of samples in the box, but the
+                # posterior means of the paper's DIPOLE weigh them by matrices.
+                self.policy_set.means = self._into_box(self.policy_means)
+        except BaseException:
+            self.load_state_dict(snapshot)
+            raise
+
+    def _tell(self, theta: Tensor, rewards: Tensor) -> None:
+        first = not self.started
+        owner = self._pending_owner[: theta.shape[0]]
+        batch = TellBatch(theta, rewards, owner, cut=owner.shape[0] < self._pending_owner.shape[0])
+        self._pending = self._pending_owner = None
+        self._observe(batch)
+        policy_rows = owner >= 0
+        self.policy_samples += int(policy_rows.sum()) if not first else 0
+        sample = owner != PROBE  # probes are evaluations, not samples
+        self.archive.append(theta[sample], rewards[sample], owner[sample])
+        self.trials += theta.shape[0]
+        if first:
+            self.last_rewards = rewards
+        else:
+            # Each policy's latest return: the sampled ones' new returns; a policy that drew
+            # no sample keeps the mean return of its kept samples.
+            sampled = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
+            sampled[owner[policy_rows]] = True
+            held = self.archive.mean_rewards(self.num_policies)[~sampled]
+            self.last_rewards = torch.cat((rewards[policy_rows], held))
+        best = int(rewards.argmax())
+        if float(rewards[best]) > self._best_reward:
+            self._best_reward = float(rewards[best])
+            self._best_theta = theta[best].clone()
+        if first:
+            self._after_initial_batch()
+        else:
+            self.iteration += 1
+            self._iterate()
+
+    # Hooks of the subclasses.
+    def _observe(self, batch: TellBatch) -> None:
+        """The told batch, before its samples enter the archive."""
+
+    def _after_initial_batch(self) -> None:
+        """After the first batch (n0 samples of policy 0) is archived."""
+
+    def _iterate(self) -> None:
+        """After every later batch is archived: the iteration's updates."""
+
+    # ------------------------------------------------------------------ the world changes
+    def reevaluate(self, returns: Tensor) -> None:
+        """Tell the optimizer that the world changed: ``returns`` are the returns of its
+        stored policies measured after the change.
+
+        Every return the optimizer kept was measured before the change and is forgotten:
+        each policy keeps one sample, its mean, with its new return, and the best so far
+        (:meth:`best`) becomes the best policy mean. A policy whose new return is below every
+        return it had kept was hurt by the change: it is sampled again (a retired one too)
+        from its mean with Σ_start's exploration, so it searches for a way around. The others
+        go on as before. The next ``ask``/``tell`` continue the run; the trial count grows by
+        K (one evaluation per stored policy, no relearning)::
+
+            theta = opt.policy_means.to(dtype)        # [K, D], retired policies included
+            opt.reevaluate(evaluate(theta))           # [K] returns in the changed world
+            best_policy = opt.policy_means[opt.last_rewards.argmax()]   # switch to it
+
+        Args:
+            returns: ``[K]`` the return of each row of :attr:`policy_means`, finite (and inside
+                ``reward_range`` when a fixed one was given).
+
+        A pending ``ask`` is discarded. If anything raises, the optimizer is unchanged.
+        """
+        if not self.started:
+            raise RuntimeError("reevaluate() needs a started run: tell() the first batch first")
+        returns = check_rewards(returns, self.num_policies, "stored policy").to(self.device)
+        self.reward_scale.validate(returns)
+        snapshot = self.state_dict()
+        try:
+            self._reevaluate(returns.to(DTYPE))
+        except BaseException:
+            self.load_state_dict(snapshot)
+            raise
+
+    def _reevaluate(self, returns: Tensor) -> None:
+        k = self.num_policies
+        hurt = returns < self.archive.per_policy("amin", k)  # no kept samples: +inf, hurt
+        self.archive.replace(
+            self.policy_means.clone(), returns.clone(), torch.arange(k, device=self.device)
+        )
+        self.trials += k
+        self.last_rewards = returns.clone()
+        best = int(returns.argmax())
+        self._best_theta = self.policy_means[best].clone()
+        self._best_reward = float(returns[best])
+        self._pending = self._pending_owner = None
+        self._restart(hurt)
+
+    def _restart(self, rows: Tensor) -> None:
+        """Policies ``rows [K]`` (bool) search again: active, Σ_start's exploration, their
+        mechanisms' fields at their defaults."""
+        self.policy_set.active = self.active | rows
+        self.policy_set.covariances = torch.where(
+            rows[:, None, None], self.sigma_start, self.policy_covariances
+        )
+        self.policy_set.reset_fields(rows)
+
+    def remove_policies(self, index: Tensor) -> None:
+        """Drop policies ``index [P]`` and their samples; renumber the others."""
+        keep = torch.ones(self.num_policies, dtype=torch.bool, device=self.device)
+        keep[index] = False
+        self.archive.drop_policies(keep)
+        self.policy_set.index(keep)
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Everything needed to continue the run exactly, generator state included."""
+        return {
+            **self.archive.state_dict(),
+            **self.policy_set.state_dict(),
+            "last_rewards": self.last_rewards.clone(),
+            "trials": self.trials,
+            "iteration": self.iteration,
+            "policy_samples": self.policy_samples,
+            "best_theta": self._best_theta.clone(),
+            "best_reward": self._best_reward,
+            "pending": None if self._pending is None else self._pending.clone(),
+            "pending_owner": None if self._pending_owner is None else self._pending_owner.clone(),
+            "generator": self.generator.get_state(),
+            "kind": type(self).__name__,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from ``state`` (of :meth:`state_dict`); raises ``ValueError`` naming what
+        does not fit this optimizer (another kind, another dimension, a missing key)."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state_dict must be a dict, got {type(state).__name__}")
+        if state.get("kind") != type(self).__name__:
+            raise ValueError(
+                f"state_dict is from a {state.get('kind')}, not a {type(self).__name__}"
+            )
+        try:
+            self.archive.load_state_dict(state, self.device)
+            self.policy_set.load_state_dict(state, self.device)
+            self.last_rewards = state["last_rewards"].to(self.device)
+            self.trials = int(state["trials"])
+            self.iteration = int(state["iteration"])
+            self.policy_samples = int(state["policy_samples"])
+            best_theta = state["best_theta"]
+            if tuple(best_theta.shape) != (self.dim,):
+                raise ValueError(
+                    f"state_dict['best_theta'] must have shape [{self.dim}], "
+                    f"got {list(best_theta.shape)}"
+                )
+            self._best_theta = best_theta.to(self.device)
+            self._best_reward = float(state["best_reward"])
+            pending, owner = state["pending"], state["pending_owner"]
+            self._pending = None if pending is None else pending.to(self.device)
+            self._pending_owner = None if owner is None else owner.to(self.device)
+            self.generator.set_state(state["generator"])
+        except KeyError as missing:
+            raise ValueError(
+                f"state_dict has no {missing} (not a {type(self).__name__}'s)"
+            ) from None
