@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import copy
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 from dipole_torch.models.ds_gmr import DSGMR
-from dipole_torch.models.kinematics import ArmKinematics, resolve_urdf_path
+from dipole_torch.models.kinematics import ArmKinematics, format_value, resolve_urdf_path
 from dipole_torch.models.numpy_kinematics import NumpyChain
 from dipole_torch.models.tracking import solve_position_ik, track_path, track_path_numpy
 from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
@@ -21,6 +23,9 @@ __all__ = ["ENGINES", "KINEMATICS", "ViapointTask"]
 KINEMATICS = ("pytorch_kinematics", "wam_dh")  # the choices of ViapointTask(kinematics=...)
 ENGINES = ("auto", "numpy", "torch")  # the choices of ViapointTask(engine=...)
 WAM_START_POSTURE = (0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0)  # rad, elbow bent, tool in front
+# m: a target or viapoint that inverse kinematics from the start posture ends farther from
+# than this gets a warning at construction.
+UNREACHED_DISTANCE = 1e-3
 
 
 class ViapointTask(EpisodicTask):
@@ -212,6 +217,15 @@ class ViapointTask(EpisodicTask):
     * ``exploration_std = 0.05`` m: the attractors of ±3σ draws stay within 0.15 m of the
       straight line, well inside the WAM's 0.91 m reach (the paper: "the initial covariance
       is set so that the trajectory stays within the workspace of the robot").
+    * Reachability, checked at construction. A start, target or viapoint beyond the arm's
+      full stretch (farther from its first joint than the summed lengths of the chain's
+      link offsets, plus the travel of its prismatic joints; :meth:`NumpyChain.reach`) is a
+      ``ValueError`` naming the point and by how much it is out of reach: no posture
+      reaches it, and a run would only end far from it. A target or viapoint within that
+      stretch which inverse kinematics from the start posture does not reach (within
+      ``UNREACHED_DISTANCE``) gets a warning naming it, not an error: joint limits or a
+      fold the arm cannot make may keep it out of reach, but another posture might reach
+      a point this one does not.
     * Differential IK: DLS on the 3 position rows of the Jacobian with damping λ = 0.05 m,
       error feedback to the next desired point, joint positions clamped to the joint limits
       (Barrett's for the WAM); the redundant degrees of freedom take the minimum-norm step
@@ -337,29 +351,85 @@ class ViapointTask(EpisodicTask):
                 f"initial_joints must give {self.kinematics.dof} finite values (joints "
                 f"{', '.join(self.kinematics.joint_names)}), got {initial_joints!r}"
             )
+        self._numpy_chain = NumpyChain(self.kinematics.chain, self.kinematics.base_link)
+        # Points beyond the chain's full stretch are errors before any IK runs.
+        named_points = [("target", self.target)] + [
+            (f"viapoints[{i}][{a}]", point)
+            for i, points in enumerate(alternatives)
+            for a, point in enumerate(points)
+        ]
+        if start is not None:
+            named_points.insert(0, ("start", _point(start, "start", factory)))
+        self._check_within_reach(named_points)
         if start is None:
-            outside = (guess < self.kinematics.joint_lower) | (guess > self.kinematics.joint_upper)
-            if bool(outside.any()):
+            outside = [
+                f"{name} = {format_value(q)} (limits [{format_value(low)}, {format_value(high)}])"
+                for name, q, low, high in zip(
+                    self.kinematics.joint_names,
+                    guess.tolist(),
+                    self.kinematics.joint_lower.tolist(),
+                    self.kinematics.joint_upper.tolist(),
+                    strict=True,
+                )
+                if not low <= q <= high
+            ]
+            if outside:
                 raise ValueError(
-                    f"initial_joints {initial_joints!r} lie outside the joint limits "
-                    f"[{self.kinematics.joint_lower.tolist()}, "
-                    f"{self.kinematics.joint_upper.tolist()}]"
+                    f"initial_joints lie outside the joint limits (rad, or m for prismatic "
+                    f"joints) at {', '.join(outside)}"
                 )
             self.q_start = guess
             self.start = self.kinematics.forward_kinematics(guess[None])[0].detach()
         else:
-            self.start = _point(start, "start", factory)
+            self.start = named_points[0][1]
             tolerance = 1e-8 if self.dtype == torch.float64 else 1e-5  # m
             self.q_start = solve_position_ik(
                 self.kinematics, self.start, guess, tolerance=tolerance
             )
+        self._warn_if_not_reached(named_points[1:] if start is not None else named_points)
         k = self.dynamics.num_attractors
         fractions = torch.linspace(0.0, 1.0, k, **factory) if k > 1 else torch.ones(1, **factory)
         self.theta0 = (self.start + fractions[:, None] * (self.target - self.start)).reshape(-1)
         self.sigma_start = exploration_std**2 * torch.eye(3 * k, **factory)
         self.reward_range = (0.0, 1.0)
         self.set_obstacles(obstacles)
-        self._numpy_chain = None  # the numpy engine's chain, built on its first rollout
+
+    # ------------------------------------------------------------------ reach checks
+    def _check_within_reach(self, named_points: Sequence[tuple[str, Tensor]]) -> None:
+        """Raise ``ValueError`` for a point (``[3]`` m, named) that no joint values reach:
+        outside the ball around the first joint whose radius is the chain's full stretch
+        (:meth:`NumpyChain.reach`)."""
+        lower, upper = _array(self.kinematics.joint_lower), _array(self.kinematics.joint_upper)
+        centre, radius = self._numpy_chain.reach(lower, upper)
+        for name, point in named_points:
+            distance = float(np.linalg.norm(_array(point) - centre))
+            if distance > radius:
+                raise ValueError(
+                    f"{name} {_format_point(point)} is out of the arm's reach (outside its "
+                    f"workspace) by {100 * (distance - radius):.1f} cm: it is "
+                    f"{distance:.3g} m from the first joint of {self.kinematics.robot_name} "
+                    f"(at {_format_point(centre)} in the frame of "
+                    f"{self.kinematics.base_link!r}), and the links from there to "
+                    f"{self.kinematics.end_effector!r} reach {radius:.3g} m at full stretch"
+                )
+
+    def _warn_if_not_reached(self, named_points: Sequence[tuple[str, Tensor]]) -> None:
+        """Warn for each point (``[3]`` m, named) that inverse kinematics from ``q_start``
+        (:meth:`NumpyChain.inverse_kinematics`) ends more than ``UNREACHED_DISTANCE`` from."""
+        lower, upper = _array(self.kinematics.joint_lower), _array(self.kinematics.joint_upper)
+        points = np.stack([_array(point) for _, point in named_points])
+        _, distances = self._numpy_chain.inverse_kinematics(
+            points, _array(self.q_start), lower, upper
+        )
+        for (name, point), distance in zip(named_points, distances.tolist(), strict=True):
+            if distance > UNREACHED_DISTANCE:
+                warnings.warn(
+                    f"{name} {_format_point(point)} may be out of the arm's reach: inverse "
+                    f"kinematics from the start posture ends {100 * distance:.1f} cm from it "
+                    "(joint limits, or a point inside the chain's stretch that no posture "
+                    "reaches); paths through it are likely to miss it",
+                    stacklevel=3,
+                )
 
     # ------------------------------------------------------------------ obstacles
     def set_obstacles(self, obstacles: Sequence[Mapping]) -> None:
@@ -487,21 +557,15 @@ class ViapointTask(EpisodicTask):
 
     def _trajectory_numpy(self, theta: Tensor) -> Tensor:
         """:meth:`trajectory` in the numpy engine (float64), returned in the task's dtype."""
-        if self._numpy_chain is None:
-            self._numpy_chain = NumpyChain(self.kinematics.chain, self.kinematics.base_link)
-
-        def array(tensor: Tensor):
-            return tensor.detach().cpu().double().numpy()
-
-        goal = array(self.target) if self.end_at_target else None
-        desired = self.dynamics.rollout_numpy(array(theta), array(self.start), goal)
+        goal = _array(self.target) if self.end_at_target else None
+        desired = self.dynamics.rollout_numpy(_array(theta), _array(self.start), goal)
         path = track_path_numpy(
             self._numpy_chain,
-            array(self.q_start),
+            _array(self.q_start),
             desired,
             self.ik_damping,
-            array(self.kinematics.joint_lower),
-            array(self.kinematics.joint_upper),
+            _array(self.kinematics.joint_lower),
+            _array(self.kinematics.joint_upper),
         )
         return torch.from_numpy(path).to(dtype=self.dtype)
 
@@ -602,7 +666,6 @@ class ViapointTask(EpisodicTask):
         ``plt.close(figure)`` / drop the reference.
         """
         import matplotlib
-        import numpy as np
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
@@ -707,19 +770,33 @@ def _plain(value):
     return [_plain(item) for item in value]
 
 
+def _array(tensor: Tensor) -> np.ndarray:
+    """A tensor as a float64 numpy array on the CPU."""
+    return tensor.detach().cpu().double().numpy()
+
+
+def _format_point(point: Tensor | np.ndarray) -> str:
+    """``[0.5, -0.35, 0]``: a point for a message, 4 significant digits (no float32 noise)."""
+    return "[" + ", ".join(format_value(x) for x in point.tolist()) + "]"
+
+
 def _point(value: Sequence[float], name: str, factory: dict) -> Tensor:
-    point = torch.as_tensor(value, **factory)
-    if point.shape != (3,) or not torch.isfinite(point).all():
-        raise ValueError(f"{name} must be a finite [x, y, z] point, got {value!r}")
+    try:
+        point = torch.as_tensor(value, **factory)
+    except (TypeError, ValueError, RuntimeError):
+        point = None  # ragged or not numbers
+    if point is None or point.shape != (3,) or not torch.isfinite(point).all():
+        raise ValueError(f"{name} must be a finite [x, y, z] point (m), got {value!r}")
     return point
 
 
 def _alternatives(value: Sequence[Sequence[float]], index: int, factory: dict) -> Tensor:
-    points = torch.as_tensor(value, **factory)
-    if points.dim() != 2 or points.shape[0] < 1 or points.shape[1] != 3:
+    """``[A, 3]``: the alternatives ``viapoints[index]``, checked one point at a time so that
+    an error names the point."""
+    layout = "(viapoints: per pass time, a list of >= 1 alternative [x, y, z] points)"
+    if isinstance(value, str) or not hasattr(value, "__len__") or len(value) == 0:
         raise ValueError(
-            f"viapoints[{index}] must be a list of >= 1 [x, y, z] alternatives, got {value!r}"
+            f"viapoints[{index}] must be a list of alternatives, got {value!r} {layout}"
         )
-    if not torch.isfinite(points).all():
-        raise ValueError(f"viapoints[{index}] contains non-finite values")
-    return points
+    points = [_point(point, f"viapoints[{index}][{a}]", factory) for a, point in enumerate(value)]
+    return torch.stack(points)

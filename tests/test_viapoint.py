@@ -3,8 +3,10 @@ on both kinematics paths, config."""
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
+import warnings
 from pathlib import Path
 
 import pytest
@@ -218,6 +220,75 @@ def test_bad_inputs_raise(task):
         ViapointTask(initial_joints=[0.0, 0.6, 1.6])
     with pytest.raises(ValueError, match="goal_time"):
         ViapointTask(goal_time=3.0)
+
+
+DEFAULT_VIAPOINTS = [
+    [[0.5, -0.29, -0.1], [0.5, -0.29, 0.1]],
+    [[0.4, 0.06, 0.0], [0.6, 0.06, 0.0]],
+    [[0.5, 0.34, -0.1], [0.5, 0.34, 0.1]],
+]
+
+
+def test_the_default_layout_is_within_reach_without_a_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ViapointTask()
+
+
+def test_points_beyond_the_arms_stretch_are_errors():
+    """The WAM's links reach 0.957 m from its shoulder at full stretch (0.55 m upper arm
+    with its 4.5 cm offset, 4.5 cm elbow offset, 0.3 m forearm, 6 cm tool): a point farther
+    is out of reach in every posture, and the error says by how much."""
+    with pytest.raises(
+        ValueError,
+        match=r"target \[1\.5, 0, 0\] is out of the arm's reach \(outside its workspace\) by "
+        r"54\.3 cm: it is 1\.5 m from the first joint of barrett_wam_7dof .* reach 0\.957 m",
+    ):
+        ViapointTask(target=[1.5, 0.0, 0.0])
+    far = copy.deepcopy(DEFAULT_VIAPOINTS)
+    far[2][1] = [0.5, 0.34, 1.2]
+    with pytest.raises(ValueError, match=r"viapoints\[2\]\[1\] \[0\.5, 0\.34, 1\.2\] is out of"):
+        ViapointTask(viapoints=far)
+
+
+def test_points_inverse_kinematics_does_not_reach_warn():
+    """5 cm above the shoulder is within the links' stretch, but the elbow cannot fold the
+    forearm back that far (joint 4 stops at 3.1 rad): a warning naming the point and how far
+    from it inverse kinematics from the start posture ends. Not an error: another posture
+    might reach a point that IK from this one does not."""
+    with pytest.warns(
+        UserWarning,
+        match=r"target \[0, 0, 0\.05\] may be out of the arm's reach: inverse kinematics from "
+        r"the start posture ends \d+\.\d cm from it",
+    ):
+        ViapointTask(target=[0.0, 0.0, 0.05])
+
+
+def test_input_errors_name_the_argument_and_the_joint():
+    ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
+    ragged[1][1] = [0.6, 0.06]
+    with pytest.raises(
+        ValueError, match=r"viapoints\[1\]\[1\] must be a finite \[x, y, z\] point \(m\)"
+    ):
+        ViapointTask(viapoints=ragged)
+    with pytest.raises(ValueError, match=r"viapoints\[0\] must be a list of alternatives"):
+        ViapointTask(viapoints=[0.5, [[0.4, 0.06, 0.0]], [[0.5, 0.34, 0.1]]])
+    with pytest.raises(ValueError, match=r"start must be a finite \[x, y, z\] point"):
+        ViapointTask(start=[0.5, "left", 0.0])
+    # The joint out of its limits is named; limits print as the URDF gives them.
+    with pytest.raises(
+        ValueError,
+        match=r"initial_joints lie outside the joint limits .* at wam_j4 = 3\.5 "
+        r"\(limits \[-0\.9, 3\.1\]\)$",
+    ):
+        ViapointTask(start=None, initial_joints=[0.0, 0.6, 0.0, 3.5, 0.0, 0.0, 0.0])
+    lower = [-2.6, -2.0, -2.8, 3.2, -4.76, -1.6, -3.0]
+    with pytest.raises(
+        ValueError, match=r"lower exceeds upper for joint\(s\) wam_j4 \[3\.2, 3\.1\] of wam7"
+    ):
+        ViapointTask(joint_lower=lower)
+    with pytest.raises(ValueError, match=r"joint_upper must be 7 numbers"):
+        ViapointTask(joint_upper=["a"] * 7)
 
 
 def test_analytic_fast_path_gives_the_default_paths():
