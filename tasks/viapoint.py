@@ -128,46 +128,46 @@ class ViapointTask(EpisodicTask):
 
     ## Arguments
 
-    * ``start``, ``target``: ``[3]`` points (m) in the arm's workspace (``start=None``: the
-      end effector of ``initial_joints``).
-    * ``pass_times``: ``[N_v]`` times (s) in ``(0, duration]``; rounded to the ``dt`` grid.
-    * ``viapoints``: per pass time, a list of ≥ 1 alternative ``[x, y, z]`` points (m); the
-      number of alternatives may differ between pass times.
-    * ``reward_alpha``: α of eq. 9 in 1/m (2.5).
-    * ``stiffness``: K_P of the spring-damper in 1/s² (100); ``K_V = 2 √K_P = 20`` 1/s.
-    * ``dt``, ``duration``: integration step and length of the motion in s (0.02, 2.8).
-    * ``time_std``: σ_t of the GMM components' time marginals in s (0.28; default of
-      :class:`DSGMR` is half the spacing of the time centres).
-    * ``end_at_target``: add the fixed final DS-GMR component at ``target`` (True);
-      ``False`` gives the K learned components alone (paths end near the last attractor).
-    * ``goal_time``: time centre (s) of that component; ``None`` (default): halfway between
-      the last pass time and ``duration`` (2.4 s for the default layout).
-    * ``exploration_std``: std (m) of the initial exploration of every attractor coordinate,
-      ``sigma_start = exploration_std² I`` (0.05).
-    * ``ik_damping``: λ of the damped least squares in m (0.05).
-    * ``obstacles``: spheres ``[{"centre": [x, y, z], "radius": ρ}, ...]`` (m) the end
-      effector's path must not enter (none); start and target must lie outside them.
-    * ``penetration_scale``: m, the penetration depth at which an obstacle divides the
-      reward by e (0.02).
-    * ``urdf``: the arm's URDF file (default: the bundled WAM, ``models/wam/wam7.urdf``);
-      relative paths are looked up in the current directory, then in the project root.
-    * ``end_effector``: the link the task moves (``"wam_tool"``); ``base_link``: the link
-      whose frame all points are in (default: the URDF's root link).
-    * ``joint_lower``, ``joint_upper``: ``[n]`` joint limits overriding the URDF's (``None``).
-    * ``initial_joints``: ``[n]`` start posture (rad; with ``start``, the guess of the start
-      IK). Default: the WAM's ``(0, 0.6, 0, 1.6, 0, 0, 0)`` for the bundled WAM, else the
-      middle of the joint limits.
-    * ``kinematics``: ``"pytorch_kinematics"`` (default, any URDF) or ``"wam_dh"`` (the
-      WAM's analytic DH fast path; bundled WAM URDF and ``wam_tool`` only).
-    * ``engine``: ``"auto"`` (default), ``"numpy"`` or ``"torch"``: how rollouts run (above).
-    * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32;
-      ``dtype`` may be a ``torch.dtype`` or its name, e.g. ``"float64"``).
+    Each constructor argument has one entry under Args below. Pass times are rounded to the
+    ``dt`` grid; the number of alternatives may differ between pass times. Without
+    ``initial_joints`` the start posture (with ``start``, the guess of the start IK) is the
+    WAM's ``(0, 0.6, 0, 1.6, 0, 0, 0)`` rad for the bundled WAM, else the middle of the joint
+    limits (0 for an unlimited joint). ``kinematics="wam_dh"`` needs the bundled WAM URDF and
+    ``wam_tool``. ``start`` and ``target`` must lie outside every obstacle. Every point must
+    be within the arm's reach (see "Choices where the paper is silent").
 
     The default layout (``configs/task/viapoint.yaml``): start ``(0.5, −0.35, 0)``, target
     ``(0.5, 0.35, 0)`` (a 70 cm straight line in front of the shoulder, 0.61 m from it at its
     ends), pass times 0.4, 1.2, 2.0 s, viapoints 10 cm either side of where the straight-line
     policy passes at each pass time: below/above at 0.4 s and 2.0 s (``z = ∓0.1``),
     near/far at 1.2 s (``x = 0.4 / 0.6``). Alternatives are 20 cm apart.
+
+    Args:
+        start: ``[3]`` start point in m (base frame); None: the end effector at initial_joints.
+        target: ``[3]`` target point in m (base frame), where paths end with end_at_target.
+        pass_times: ``[N_v]`` times in s, in ``(0, duration]``, one learned attractor each.
+        viapoints: per pass time, a list of >= 1 alternative ``[x, y, z]`` points in m.
+        reward_alpha: α of eq. 9 in 1/m: how steeply the reward falls with the miss distance.
+        stiffness: K_P of the spring-damper in 1/s²; the damping is K_V = 2 √K_P in 1/s.
+        dt: integration step in s.
+        duration: length of the motion in s.
+        time_std: σ_t of the GMM components' time marginals in s; None: half their spacing.
+        end_at_target: add a fixed final DS-GMR component at target, so that paths end there.
+        goal_time: time centre in s of that component; None: (last pass time + duration) / 2.
+        exploration_std: std in m of the initial exploration of each attractor coordinate.
+        ik_damping: λ of the damped-least-squares tracking IK in m.
+        obstacles: spheres ``[{"centre": [x, y, z], "radius": ρ}, ...]`` in m to keep out of.
+        penetration_scale: penetration depth in m at which an obstacle divides the reward by e.
+        urdf: the arm's URDF file; a relative path: from the current directory, else the project.
+        end_effector: name of the link the task moves through the viapoints.
+        base_link: name of the link whose frame all points are in; None: the URDF's root link.
+        joint_lower: ``[n]`` lower joint limits in rad (m for prismatic); None: the URDF's.
+        joint_upper: ``[n]`` upper joint limits in rad (m for prismatic); None: the URDF's.
+        initial_joints: ``[n]`` start posture in rad (the start IK's guess); None: see above.
+        kinematics: "pytorch_kinematics" (any URDF) or "wam_dh" (the bundled WAM's DH path).
+        engine: "auto", "numpy" or "torch": how rollouts run (see Description).
+        device: torch device the rollouts run on ("cpu", "cuda", ...).
+        dtype: floating dtype of the rollouts, a torch.dtype or its name ("float64").
 
     ## Deviations from the paper
 
