@@ -9,6 +9,7 @@ import math
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from dipole_torch.models.kinematics import ArmKinematics
@@ -336,8 +337,67 @@ def test_describe_and_plot_policies(task):
     assert "start" in texts and "target" in texts and any("below / near" in t for t in texts)
     figure.canvas.draw()  # renders on Agg, no display
     matplotlib.pyplot.close(figure)
-    with pytest.raises(ValueError, match="labels"):
-        task.plot_policies(thetas[:2], labels=["one"])
+
+
+def figure_layout_problems(figure, margins: bool = True) -> list[str]:
+    """What makes a rendered policy figure hard to read in a TensorBoard card: wider than a
+    card, more than 5 ticks on an axis, the legend or the title over an axis' ticks or
+    label, the title outside the image, and with ``margins`` wide empty margins (the
+    drawing, non-white pixels, spanning less than 90 % of the height or 85 % of the
+    width)."""
+    figure.canvas.draw()
+    width, height = figure.canvas.get_width_height()
+    problems = [] if 500 <= width <= 700 else [f"{width} px wide"]
+    ax = figure.axes[0]
+    renderer = figure.canvas.get_renderer()
+    legend = ax.get_legend().get_window_extent(renderer)
+    title = ax.title.get_window_extent(renderer)
+    if not (title.x0 >= 0 and title.y0 >= 0 and title.x1 <= width and title.y1 <= height):
+        problems.append(f"title outside the image: {title}")
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        low, high = sorted(axis.get_view_interval())
+        shown = [
+            label
+            for location, label in zip(axis.get_majorticklocs(), axis.get_ticklabels(), strict=True)
+            if low <= location <= high  # (the locator also places ticks beyond the view)
+        ]
+        if len(shown) > 5:
+            problems.append(f"{len(shown)} ticks on {axis.axis_name}")
+        for text in [*shown, axis.label]:
+            extent = text.get_window_extent(renderer)
+            for name, box in (("legend", legend), ("title", title)):
+                if box.overlaps(extent):
+                    problems.append(f"{name} over {text.get_text()!r}")
+    image = np.asarray(figure.canvas.buffer_rgba())[..., :3]
+    drawn = (image < 250).any(axis=-1)
+    rows, columns = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    spans = (rows[-1] - rows[0]) / height, (columns[-1] - columns[0]) / width
+    if margins and (spans[0] < 0.9 or spans[1] < 0.85):
+        problems.append(f"wide empty margins: the drawing spans {spans[0]:.0%} x {spans[1]:.0%}")
+    return problems
+
+
+def test_policy_figure_is_legible_at_tensorboard_card_size(task):
+    """As TensorBoard's add_figure renders it (the canvas at the figure's dpi), on the
+    default layout with an obstacle and on a layout whose box is tall and narrow (which
+    leaves the sides of a landscape figure empty, but must not overlap)."""
+    matplotlib = pytest.importorskip("matplotlib.pyplot")
+    thetas, _ = route_policies(task)
+    blocked = task.with_obstacles([{"centre": [0.6, 0.06, 0.0], "radius": 0.08}])
+    figure = blocked.plot_policies(torch.cat([thetas[[0, 3, 5, 6]], task.theta0[None]]))
+    assert figure_layout_problems(figure) == []
+    matplotlib.close(figure)
+    tall = ViapointTask(
+        start=[0.5, 0.0, -0.3],
+        target=[0.5, 0.0, 0.3],
+        pass_times=[0.8, 1.6],
+        viapoints=[[[0.5, -0.1, -0.1], [0.5, 0.1, -0.1]], [[0.5, 0.0, 0.15]]],
+        duration=2.4,
+        time_std=None,
+    )
+    figure = tall.plot_policies(tall.theta0[None])
+    assert figure_layout_problems(figure, margins=False) == []
+    matplotlib.close(figure)
 
 
 def test_dipole_finds_several_routes():
