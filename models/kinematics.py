@@ -13,18 +13,64 @@ Everything is differentiable in ``q`` (pytorch-kinematics attaches an analytical
 its forward kinematics; the Jacobian is built from those poses with torch ops), so rewards of
 tracked paths can be differentiated back to the policy parameters.
 
-Joints on the chain may be revolute, continuous (unlimited revolute) or prismatic. Joint
-limits come from the URDF (``±inf`` for continuous joints) unless overridden.
+Joints on the chain may be revolute, continuous (unlimited revolute) or prismatic.
+
+Loading a vendor's file
+-----------------------
+The file is read here first (:func:`read_urdf_tree`), and pytorch-kinematics gets a copy
+holding only what kinematics uses:
+
+* The links and joints must form one tree: every joint names a parent and a child link that
+  exist, no link is the child of two joints, one root link. A ``ValueError`` names the joint
+  and the missing link otherwise (a joint whose parent is missing would otherwise cut its
+  subtree off, and its links would look absent).
+* Elements kinematics never reads are dropped: every top-level element but ``<link>`` and
+  ``<joint>`` (``<transmission>``, ``<gazebo>``, ``<material>``, ``<ros2_control>``, ...),
+  everything inside a ``<link>`` but its ``<origin>`` (visuals, collisions, inertials:
+  ``package://`` meshes are never opened) and a joint's ``<dynamics>``,
+  ``<safety_controller>`` and ``<calibration>``. So a transmission whose reduction is not a
+  number, or a material pytorch-kinematics does not know, does not stop or clutter loading.
+  A joint's ``<limit>`` and ``<mimic>`` are read here (below) and dropped from the copy too.
+* What pytorch-kinematics still reports about the rest (an unknown tag or attribute inside
+  a joint, perhaps a typo) comes as a ``UserWarning`` naming the file, and any parse error
+  as a ``ValueError`` naming the file.
+* A joint of a type pytorch-kinematics lacks (``floating``, ``planar``) off the chain is
+  taken as fixed (it moves nothing on the chain); on the chain it is an error.
+* A movable joint without ``<axis>`` turns about (or slides along) x, URDF's default
+  (pytorch-kinematics would take z); an axis of zeros is an error.
+* A mimic joint on the chain is an error (pytorch-kinematics would move it as a joint of
+  its own); off the chain (e.g. a gripper's second finger) it is ignored.
+* An unexpanded xacro file is an error that says to run ``xacro`` first.
+
+Joint limits (rad, or m for prismatic joints) come from the URDF unless ``joint_lower`` /
+``joint_upper`` override them:
+
+* a continuous joint: ``(-inf, inf)``, whatever its ``<limit>`` tag says (URDF gives a
+  continuous joint no position limits; its tag carries effort and velocity);
+* a revolute or prismatic joint: its tag's ``lower`` and ``upper``; one of them missing is
+  0, URDF's default (``<limit upper="2.6" .../>`` is ``[0, 2.6]``);
+* both missing: a ``ValueError`` naming the joint, unless both overrides are given.
+  URDF's defaults would lock the joint at ``[0, 0]`` and the arm would silently lose a
+  degree of freedom; a joint meant not to move is written ``fixed``;
+* a revolute or prismatic joint without a ``<limit>`` tag (URDF requires one):
+  ``(-inf, inf)``, as pytorch-kinematics reads it.
+
+The chain's joints (``ArmKinematics.chain``) carry the limits the arm uses.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import difflib
+import math
+import warnings
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from xml.etree import ElementTree
 
 import pytorch_kinematics as pk
 import torch
+from pytorch_kinematics.urdf_parser_py.xml_reflection import core as urdf_reflection
 from torch import Tensor
 
 # The repository root; in a wheel, the installed dipole_torch/ folder, which holds models/ there
@@ -43,6 +89,205 @@ def resolve_urdf_path(urdf: str | Path) -> Path:
             return candidate.resolve()
     tried = ", ".join(str(c) for c in candidates)
     raise FileNotFoundError(f"urdf: no file {str(urdf)!r} (tried {tried})")
+
+
+URDF_JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")
+CHAIN_JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed")  # pytorch-kinematics'
+# A joint's elements the copy for pytorch-kinematics leaves out: read here (limit, mimic) or
+# never needed for kinematics (and a source of parse errors in vendors' files).
+_JOINT_ELEMENTS_DROPPED = frozenset(
+    {"limit", "mimic", "dynamics", "safety_controller", "calibration"}
+)
+_LIMIT_ATTRIBUTES = frozenset({"lower", "upper", "effort", "velocity"})
+
+
+class UrdfTree:
+    """The links and joints of a URDF file, checked to form one tree.
+
+    Attributes:
+        path: the file.
+        robot_name: its ``<robot name=...>`` (the file's stem if it has none).
+        root_link: the one link that is no joint's child.
+        links: link names, depth first from the root (children in the file's joint order).
+        joints: ``{name: <joint> element}`` in file order.
+        parent_joint: ``{link: name of the joint whose child it is}`` for every link but
+            the root.
+    """
+
+    def __init__(self, robot: ElementTree.Element, path: Path):
+        self.path = path
+        self.robot_name = robot.get("name") or path.stem
+        self.links = []
+        self.joints: dict[str, ElementTree.Element] = {}
+        self.parent_joint: dict[str, str] = {}
+        self._robot = robot
+        file = path.name
+        declared = []
+        for link in robot.findall("link"):
+            name = link.get("name")
+            if not name:
+                raise ValueError(f"urdf {path}: a <link> has no name")
+            if name in declared:
+                raise ValueError(f"urdf {path}: link {name!r} is defined twice")
+            declared.append(name)
+        if not declared:
+            raise ValueError(f"urdf {path}: no <link> elements (is it a URDF file?)")
+        children: dict[str, list[str]] = {name: [] for name in declared}
+        for joint in robot.findall("joint"):
+            name = joint.get("name")
+            if not name:
+                raise ValueError(f"urdf {path}: a <joint> has no name")
+            if name in self.joints:
+                raise ValueError(f"urdf {path}: joint {name!r} is defined twice")
+            kind = joint.get("type")
+            if kind not in URDF_JOINT_TYPES:
+                raise ValueError(
+                    f"urdf {path}: joint {name!r} has type {kind!r}; URDF's joint types are "
+                    f"{', '.join(URDF_JOINT_TYPES)}"
+                )
+            ends = {}
+            for end in ("parent", "child"):
+                element = joint.find(end)
+                link = element.get("link") if element is not None else None
+                if not link:
+                    raise ValueError(f'urdf {path}: joint {name!r} has no <{end} link="..."/>')
+                if link not in children:
+                    close = difflib.get_close_matches(link, declared, n=1)
+                    hint = f" (did you mean {close[0]!r}?)" if close else ""
+                    raise ValueError(
+                        f"urdf {path}: joint {name!r} names {end} link {link!r}, which is not a "
+                        f"link of {file}{hint}"
+                    )
+                ends[end] = link
+            parent, child = ends["parent"], ends["child"]
+            if child in self.parent_joint:
+                raise ValueError(
+                    f"urdf {path}: link {child!r} is the child of two joints, "
+                    f"{self.parent_joint[child]!r} and {name!r}"
+                )
+            if child == parent:
+                raise ValueError(f"urdf {path}: joint {name!r} joins link {child!r} to itself")
+            self.joints[name] = joint
+            self.parent_joint[child] = name
+            children[parent].append(child)
+        roots = [name for name in declared if name not in self.parent_joint]
+        if len(roots) != 1:
+            raise ValueError(
+                f"urdf {path}: "
+                + (
+                    f"{len(roots)} root links (links that are no joint's child): "
+                    f"{', '.join(roots)}; a URDF is one tree with one root"
+                    if roots
+                    else "every link is a joint's child: the joints form a loop"
+                )
+            )
+        self.root_link = roots[0]
+        stack = [self.root_link]
+        while stack:  # depth first, children in the file's joint order
+            link = stack.pop()
+            self.links.append(link)
+            stack.extend(reversed(children[link]))
+        if len(self.links) != len(declared):
+            loop = [name for name in declared if name not in set(self.links)]
+            raise ValueError(
+                f"urdf {path}: the joints form a loop through links {', '.join(loop)} (not "
+                f"connected to the root link {self.root_link!r})"
+            )
+
+    def parent_link(self, link: str) -> str | None:
+        """The parent link of ``link`` (``None`` for the root)."""
+        joint = self.parent_joint.get(link)
+        return None if joint is None else self.joints[joint].find("parent").get("link")
+
+    def chain_joints(self, base_link: str, end_effector: str) -> list[str] | None:
+        """Names of the joints from ``base_link`` down to ``end_effector`` (fixed ones
+        included), or ``None`` if ``end_effector`` is not below ``base_link``."""
+        joints, link = [], end_effector
+        while link != base_link:
+            if link not in self.parent_joint:
+                return None
+            joints.append(self.parent_joint[link])
+            link = self.parent_link(link)
+        return joints[::-1]
+
+    def kinematic_copy(self) -> bytes:
+        """The file as pytorch-kinematics gets it: links and joints only, without the
+        elements kinematics does not read (module docstring). A joint of a type
+        pytorch-kinematics lacks becomes fixed (:class:`ArmKinematics` rejects one on its
+        chain); a movable joint without ``<axis>`` gets URDF's default x axis."""
+        robot = ElementTree.Element("robot", name=self.robot_name)
+        for link in self._robot.findall("link"):
+            copy = ElementTree.SubElement(robot, "link", name=link.get("name"))
+            copy.extend(link.findall("origin"))  # pytorch-kinematics applies a link's origin
+        for joint in self.joints.values():
+            copy = ElementTree.SubElement(robot, "joint", dict(joint.attrib))
+            copy.extend(child for child in joint if child.tag not in _JOINT_ELEMENTS_DROPPED)
+            kind = joint.get("type")
+            if kind not in CHAIN_JOINT_TYPES:
+                copy.set("type", "fixed")
+            elif kind != "fixed" and copy.find("axis") is None:
+                ElementTree.SubElement(copy, "axis", xyz="1 0 0")  # URDF's default axis
+        return ElementTree.tostring(robot)
+
+    def joint_limits(self, name: str) -> tuple[float | None, float | None]:
+        """``(lower, upper)`` of joint ``name`` from the URDF (module docstring): ``±inf``
+        for a continuous joint or a joint without ``<limit>``; ``None`` for a missing
+        ``lower`` / ``upper`` attribute of a revolute or prismatic joint's ``<limit>``."""
+        joint = self.joints[name]
+        limit = joint.find("limit")
+        if joint.get("type") == "continuous" or limit is None:
+            return -math.inf, math.inf
+        unknown = sorted(set(limit.attrib) - _LIMIT_ATTRIBUTES)
+        if unknown:
+            warnings.warn(
+                f"urdf {self.path}: joint {name!r}: unknown <limit> attribute(s) "
+                f"{', '.join(unknown)} (URDF's are effort, lower, upper, velocity)",
+                stacklevel=3,
+            )
+        values = []
+        for side in ("lower", "upper"):
+            text = limit.get(side)
+            try:
+                values.append(None if text is None else float(text))
+            except ValueError:
+                raise ValueError(
+                    f"urdf {self.path}: joint {name!r} has <limit {side}={text!r}>, not a number"
+                ) from None
+        return values[0], values[1]
+
+
+def read_urdf_tree(path: Path) -> UrdfTree:
+    """The checked :class:`UrdfTree` of the URDF file ``path``. Raises ``ValueError`` naming
+    the file for invalid XML, an unexpanded xacro file or links and joints that are not one
+    tree (naming the joint and the link)."""
+    try:
+        robot = ElementTree.fromstring(path.read_bytes())
+    except ElementTree.ParseError as error:
+        raise ValueError(f"urdf {path} is not valid XML: {error}") from None
+    if any(element.tag.startswith("{") and "xacro" in element.tag for element in robot.iter()):
+        raise ValueError(
+            f"urdf {path} is a xacro file (it holds xacro: elements): expand it first, e.g. "
+            f"`xacro {path.name} > {path.stem.removesuffix('.urdf')}.urdf`"
+        )
+    if robot.tag != "robot":
+        raise ValueError(f"urdf {path}: its root element is <{robot.tag}>, not <robot>")
+    return UrdfTree(robot, path)
+
+
+@contextlib.contextmanager
+def _urdf_messages_as_warnings(path: Path) -> Iterator[None]:
+    """pytorch-kinematics' URDF parser writes what it skips ('Unknown tag ...') to stderr;
+    within this block each message is a ``UserWarning`` naming ``path`` instead."""
+
+    def warn(message: str) -> None:
+        warnings.warn(f"urdf {path}: {message}", stacklevel=2)
+
+    previous = urdf_reflection.on_error
+    urdf_reflection.on_error = warn
+    try:
+        yield
+    finally:
+        urdf_reflection.on_error = previous
 
 
 class ArmKinematics:
@@ -80,55 +325,116 @@ class ArmKinematics:
         self.device = torch.device(device)
         self.dtype = dtype
         self.urdf_path = resolve_urdf_path(urdf)
-        text = self.urdf_path.read_bytes()
-        try:
-            self.robot_name = ElementTree.fromstring(text).get("name") or self.urdf_path.stem
-        except ElementTree.ParseError as error:
-            raise ValueError(f"urdf {self.urdf_path} is not valid XML: {error}") from None
-        try:
-            full_chain = pk.build_chain_from_urdf(text)
-        except KeyError as error:  # pytorch-kinematics maps joint types through a dict
-            raise ValueError(
-                f"urdf {self.urdf_path}: unsupported joint type {error} (serial chains of "
-                "revolute, continuous, prismatic and fixed joints are supported)"
-            ) from None
-        links = full_chain.get_link_names()
+        tree = read_urdf_tree(self.urdf_path)
+        self.robot_name = tree.robot_name
+        file = self.urdf_path.name
         for name, value in (("end_effector", end_effector), ("base_link", base_link)):
-            if value is not None and value not in links:
+            if value is not None and value not in tree.links:
+                close = difflib.get_close_matches(value, tree.links, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
                 raise ValueError(
-                    f"{name} {value!r} is not a link of {self.urdf_path.name}; its links are "
-                    f"{', '.join(links)}"
+                    f"{name} {value!r} is not a link of {file}{hint}; its links are "
+                    f"{', '.join(tree.links)}"
                 )
-        root = full_chain._root.name if base_link is None else base_link
-        base = full_chain.find_frame(root)
-        below_base = base is not None and end_effector in _frame_names_below(base)
-        if not below_base:
+        root = tree.root_link if base_link is None else base_link
+        on_chain = tree.chain_joints(root, end_effector)
+        if on_chain is None:
             raise ValueError(
                 f"end_effector {end_effector!r} is not below base_link {root!r} in "
-                f"{self.urdf_path.name}: pick a base link on the path from the root to it"
+                f"{file}: pick a base link on the path from the root to it"
             )
+        for joint in on_chain:
+            element = tree.joints[joint]
+            if element.get("type") not in CHAIN_JOINT_TYPES:
+                raise ValueError(
+                    f"urdf {self.urdf_path}: unsupported joint type {element.get('type')!r} of "
+                    f"joint {joint!r} between {root!r} and {end_effector!r} (serial chains of "
+                    "revolute, continuous, prismatic and fixed joints are supported)"
+                )
+            axis = element.find("axis")
+            if element.get("type") != "fixed" and axis is not None:
+                text = axis.get("xyz", "")
+                try:
+                    values = [float(x) for x in text.split()]
+                except ValueError:
+                    values = []
+                if len(values) != 3 or not any(values):  # pytorch-kinematics would give NaN
+                    raise ValueError(
+                        f"urdf {self.urdf_path}: joint {joint!r} has <axis xyz={text!r}>; a "
+                        "movable joint's axis is three numbers, not all zero"
+                    )
+            mimic = element.find("mimic")
+            if mimic is not None:
+                raise ValueError(
+                    f"urdf {self.urdf_path}: joint {joint!r} between {root!r} and "
+                    f"{end_effector!r} mimics joint {mimic.get('joint')!r}; a chain with mimic "
+                    "joints is not supported (it would move as a joint of its own): pick an "
+                    f"end effector above it, e.g. {tree.joints[joint].find('parent').get('link')!r}"
+                )
         self.base_link = root
         self.end_effector = end_effector
+        try:
+            with _urdf_messages_as_warnings(self.urdf_path):
+                full_chain = pk.build_chain_from_urdf(tree.kinematic_copy())
+        except urdf_reflection.ParseError as error:
+            raise ValueError(f"urdf {self.urdf_path}: {error}") from None
         chain = pk.SerialChain(full_chain, end_effector, "" if base_link is None else base_link)
         self.chain = chain.to(device=self.device, dtype=dtype)
         self.joint_names = list(self.chain.get_joint_parameter_names())
         self.dof = len(self.joint_names)
         if self.dof == 0:
-            raise ValueError(
-                f"no movable joint between {root!r} and {end_effector!r} in {self.urdf_path.name}"
-            )
-        lower, upper = self.chain.get_joint_limits()
+            raise ValueError(f"no movable joint between {root!r} and {end_effector!r} in {file}")
+        lower, upper = self._urdf_limits(tree, joint_lower is None or joint_upper is None)
         factory = {"device": self.device, "dtype": dtype}
         self.joint_lower = self._limit(joint_lower, lower, "joint_lower", factory)
         self.joint_upper = self._limit(joint_upper, upper, "joint_upper", factory)
-        if not bool((self.joint_lower <= self.joint_upper).all()):
-            raise ValueError(
-                f"joint limits: lower {self.joint_lower.tolist()} exceeds upper "
-                f"{self.joint_upper.tolist()} for some joint of {self.joint_names}"
+        crossed = [
+            f"{name} [{format_value(low)}, {format_value(high)}]"
+            for name, low, high in zip(
+                self.joint_names, self.joint_lower.tolist(), self.joint_upper.tolist(), strict=True
             )
+            if not low <= high
+        ]
+        if crossed:
+            raise ValueError(
+                f"joint limits: lower exceeds upper for joint(s) {', '.join(crossed)} of "
+                f"{file} (rad, or m for prismatic joints)"
+            )
+        # The chain's own limits, for users of arm.chain: the ones this arm uses.
+        for joint, low, high in zip(
+            self.chain.get_joints(),
+            self.joint_lower.tolist(),
+            self.joint_upper.tolist(),
+            strict=True,
+        ):
+            joint.limits = (low, high)
+
+    def _urdf_limits(self, tree: UrdfTree, needed: bool) -> tuple[list[float], list[float]]:
+        """``[n]`` lower and upper limits of the chain's joints from the URDF (module
+        docstring); ``needed``: some side is not overridden, so a joint whose ``<limit>``
+        gives neither is an error."""
+        lower, upper = [], []
+        for name in self.joint_names:
+            low, high = tree.joint_limits(name)
+            if low is None and high is None and needed:
+                raise ValueError(
+                    f"urdf {self.urdf_path}: joint {name!r} is {tree.joints[name].get('type')} "
+                    "but its <limit> gives neither lower nor upper; URDF's defaults would lock "
+                    "it at [0, 0]. Give lower and upper in the tag (or make the joint "
+                    "continuous or fixed), or pass joint_lower and joint_upper"
+                )
+            lower.append(0.0 if low is None else low)  # URDF's default for a missing side
+            upper.append(0.0 if high is None else high)
+        return lower, upper
 
     def _limit(self, given, from_urdf, name: str, factory: dict) -> Tensor:
-        values = from_urdf if given is None else [float(v) for v in given]
+        try:
+            values = from_urdf if given is None else [float(v) for v in given]
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{name} must be {self.dof} numbers (joints {', '.join(self.joint_names)}), "
+                f"got {given!r}"
+            ) from None
         if len(values) != self.dof:
             raise ValueError(
                 f"{name} must give {self.dof} values (joints {', '.join(self.joint_names)}), "
@@ -171,8 +477,7 @@ class ArmKinematics:
         return torch.where(torch.isfinite(middle), middle, torch.zeros_like(middle))
 
 
-def _frame_names_below(frame) -> set[str]:
-    names = {frame.name}
-    for child in frame.children:
-        names |= _frame_names_below(child)
-    return names
+def format_value(value: float) -> str:
+    """A joint value or limit for a message: 4 significant digits, so that float32 limits
+    print as the URDF wrote them (``2.6``, not ``2.5999999046325684``)."""
+    return f"{value:.4g}"

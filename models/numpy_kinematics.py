@@ -95,6 +95,11 @@ class NumpyChain:
             [np.einsum("nij,nj->ni", self._rotation, axes), self._translation], axis=-1
         )[:, None]
         self._tool_translation = static[:3, 3]
+        self._first_joint_origin = self._translation[0].copy()
+        # Lengths of the fixed offsets after the first joint's motion, up to the end effector.
+        self._offset_lengths = np.linalg.norm(
+            np.concatenate([self._translation[1:], self._tool_translation[None]]), axis=-1
+        )
 
     def position_and_jacobian(
         self, q: NDArray[np.float64]
@@ -146,3 +151,48 @@ class NumpyChain:
     def forward_kinematics(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """End-effector positions ``[B, 3]`` of ``q: [B, n]``."""
         return self.position_and_jacobian(q)[0]
+
+    def reach(
+        self, lower: NDArray[np.float64], upper: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], float]:
+        """A ball every end-effector position lies in, whatever the joint values within
+        ``[lower, upper]: [n]``: its centre ``[3]`` (the first movable joint's origin, which no
+        joint moves) and radius (m).
+
+        The radius is the sum of the lengths of the chain's fixed offsets after that joint,
+        the tool offset included, plus each prismatic joint's largest travel: rotations keep
+        lengths, so the end effector is never farther from the centre (the triangle
+        inequality). It is reached only where the arm can stretch every offset along one
+        line, so a point inside may still be out of reach; one outside never is. ``inf`` for
+        an unlimited prismatic joint.
+        """
+        travel = np.maximum(np.abs(lower), np.abs(upper))[~self.revolute]
+        return self._first_joint_origin.copy(), float(self._offset_lengths.sum() + travel.sum())
+
+    def inverse_kinematics(
+        self,
+        points: NDArray[np.float64],
+        q_guess: NDArray[np.float64],
+        lower: NDArray[np.float64],
+        upper: NDArray[np.float64],
+        damping: float = 1e-2,
+        iterations: int = 300,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Joint values ``[P, n]`` that bring the end effector towards each of ``points:
+        [P, 3]``, by iterated damped least squares from ``q_guess: [n]`` within ``[lower,
+        upper]: [n]`` (``damping`` λ in m), and the distance ``[P]`` (m) at which each ends.
+
+        A distance well above 0 says that from this guess the point was not reached: it may
+        be out of the arm's reach, or behind a joint limit from this posture.
+        """
+        q = np.clip(np.broadcast_to(q_guess, (points.shape[0], self.dof)), lower, upper)
+        damping_term = damping**2 * np.eye(3)
+        for _ in range(iterations):
+            position, jacobian = self.position_and_jacobian(q)
+            error = points - position
+            jacobian_t = jacobian.transpose(0, 2, 1)
+            gram = jacobian @ jacobian_t + damping_term
+            step = (jacobian_t @ np.linalg.solve(gram, error[:, :, None]))[:, :, 0]
+            q = np.clip(q + step, lower, upper)
+        distance = np.linalg.norm(points - self.forward_kinematics(q), axis=-1)
+        return q, distance

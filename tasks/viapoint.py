@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import copy
+import itertools
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 from dipole_torch.models.ds_gmr import DSGMR
-from dipole_torch.models.kinematics import ArmKinematics, resolve_urdf_path
+from dipole_torch.models.kinematics import ArmKinematics, format_value, resolve_urdf_path
 from dipole_torch.models.numpy_kinematics import NumpyChain
 from dipole_torch.models.tracking import solve_position_ik, track_path, track_path_numpy
 from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
@@ -21,6 +24,9 @@ __all__ = ["ENGINES", "KINEMATICS", "ViapointTask"]
 KINEMATICS = ("pytorch_kinematics", "wam_dh")  # the choices of ViapointTask(kinematics=...)
 ENGINES = ("auto", "numpy", "torch")  # the choices of ViapointTask(engine=...)
 WAM_START_POSTURE = (0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0)  # rad, elbow bent, tool in front
+# m: a target or viapoint that inverse kinematics from the start posture ends farther from
+# than this gets a warning at construction.
+UNREACHED_DISTANCE = 1e-3
 
 
 class ViapointTask(EpisodicTask):
@@ -123,46 +129,46 @@ class ViapointTask(EpisodicTask):
 
     ## Arguments
 
-    * ``start``, ``target``: ``[3]`` points (m) in the arm's workspace (``start=None``: the
-      end effector of ``initial_joints``).
-    * ``pass_times``: ``[N_v]`` times (s) in ``(0, duration]``; rounded to the ``dt`` grid.
-    * ``viapoints``: per pass time, a list of ≥ 1 alternative ``[x, y, z]`` points (m); the
-      number of alternatives may differ between pass times.
-    * ``reward_alpha``: α of eq. 9 in 1/m (2.5).
-    * ``stiffness``: K_P of the spring-damper in 1/s² (100); ``K_V = 2 √K_P = 20`` 1/s.
-    * ``dt``, ``duration``: integration step and length of the motion in s (0.02, 2.8).
-    * ``time_std``: σ_t of the GMM components' time marginals in s (0.28; default of
-      :class:`DSGMR` is half the spacing of the time centres).
-    * ``end_at_target``: add the fixed final DS-GMR component at ``target`` (True);
-      ``False`` gives the K learned components alone (paths end near the last attractor).
-    * ``goal_time``: time centre (s) of that component; ``None`` (default): halfway between
-      the last pass time and ``duration`` (2.4 s for the default layout).
-    * ``exploration_std``: std (m) of the initial exploration of every attractor coordinate,
-      ``sigma_start = exploration_std² I`` (0.05).
-    * ``ik_damping``: λ of the damped least squares in m (0.05).
-    * ``obstacles``: spheres ``[{"centre": [x, y, z], "radius": ρ}, ...]`` (m) the end
-      effector's path must not enter (none); start and target must lie outside them.
-    * ``penetration_scale``: m, the penetration depth at which an obstacle divides the
-      reward by e (0.02).
-    * ``urdf``: the arm's URDF file (default: the bundled WAM, ``models/wam/wam7.urdf``);
-      relative paths are looked up in the current directory, then in the project root.
-    * ``end_effector``: the link the task moves (``"wam_tool"``); ``base_link``: the link
-      whose frame all points are in (default: the URDF's root link).
-    * ``joint_lower``, ``joint_upper``: ``[n]`` joint limits overriding the URDF's (``None``).
-    * ``initial_joints``: ``[n]`` start posture (rad; with ``start``, the guess of the start
-      IK). Default: the WAM's ``(0, 0.6, 0, 1.6, 0, 0, 0)`` for the bundled WAM, else the
-      middle of the joint limits.
-    * ``kinematics``: ``"pytorch_kinematics"`` (default, any URDF) or ``"wam_dh"`` (the
-      WAM's analytic DH fast path; bundled WAM URDF and ``wam_tool`` only).
-    * ``engine``: ``"auto"`` (default), ``"numpy"`` or ``"torch"``: how rollouts run (above).
-    * ``device``, ``dtype``: where and in which precision rollouts run (``"cpu"``, float32;
-      ``dtype`` may be a ``torch.dtype`` or its name, e.g. ``"float64"``).
+    Each constructor argument has one entry under Args below. Pass times are rounded to the
+    ``dt`` grid; the number of alternatives may differ between pass times. Without
+    ``initial_joints`` the start posture (with ``start``, the guess of the start IK) is the
+    WAM's ``(0, 0.6, 0, 1.6, 0, 0, 0)`` rad for the bundled WAM, else the middle of the joint
+    limits (0 for an unlimited joint). ``kinematics="wam_dh"`` needs the bundled WAM URDF and
+    ``wam_tool``. ``start`` and ``target`` must lie outside every obstacle. Every point must
+    be within the arm's reach (see "Choices where the paper is silent").
 
     The default layout (``configs/task/viapoint.yaml``): start ``(0.5, −0.35, 0)``, target
     ``(0.5, 0.35, 0)`` (a 70 cm straight line in front of the shoulder, 0.61 m from it at its
     ends), pass times 0.4, 1.2, 2.0 s, viapoints 10 cm either side of where the straight-line
     policy passes at each pass time: below/above at 0.4 s and 2.0 s (``z = ∓0.1``),
     near/far at 1.2 s (``x = 0.4 / 0.6``). Alternatives are 20 cm apart.
+
+    Args:
+        start: ``[3]`` start point in m (base frame); None: the end effector at initial_joints.
+        target: ``[3]`` target point in m (base frame), where paths end with end_at_target.
+        pass_times: ``[N_v]`` times in s, in ``(0, duration]``, one learned attractor each.
+        viapoints: per pass time, a list of >= 1 alternative ``[x, y, z]`` points in m.
+        reward_alpha: α of eq. 9 in 1/m: how steeply the reward falls with the miss distance.
+        stiffness: K_P of the spring-damper in 1/s²; the damping is K_V = 2 √K_P in 1/s.
+        dt: integration step in s.
+        duration: length of the motion in s.
+        time_std: σ_t of the GMM components' time marginals in s; None: half their spacing.
+        end_at_target: add a fixed final DS-GMR component at target, so that paths end there.
+        goal_time: time centre in s of that component; None: (last pass time + duration) / 2.
+        exploration_std: std in m of the initial exploration of each attractor coordinate.
+        ik_damping: λ of the damped-least-squares tracking IK in m.
+        obstacles: spheres ``[{"centre": [x, y, z], "radius": ρ}, ...]`` in m to keep out of.
+        penetration_scale: penetration depth in m at which an obstacle divides the reward by e.
+        urdf: the arm's URDF file; a relative path: from the current directory, else the project.
+        end_effector: name of the link the task moves through the viapoints.
+        base_link: name of the link whose frame all points are in; None: the URDF's root link.
+        joint_lower: ``[n]`` lower joint limits in rad (m for prismatic); None: the URDF's.
+        joint_upper: ``[n]`` upper joint limits in rad (m for prismatic); None: the URDF's.
+        initial_joints: ``[n]`` start posture in rad (the start IK's guess); None: see above.
+        kinematics: "pytorch_kinematics" (any URDF) or "wam_dh" (the bundled WAM's DH path).
+        engine: "auto", "numpy" or "torch": how rollouts run (see Description).
+        device: torch device the rollouts run on ("cpu", "cuda", ...).
+        dtype: floating dtype of the rollouts, a torch.dtype or its name ("float64").
 
     ## Deviations from the paper
 
@@ -212,6 +218,15 @@ class ViapointTask(EpisodicTask):
     * ``exploration_std = 0.05`` m: the attractors of ±3σ draws stay within 0.15 m of the
       straight line, well inside the WAM's 0.91 m reach (the paper: "the initial covariance
       is set so that the trajectory stays within the workspace of the robot").
+    * Reachability, checked at construction. A start, target or viapoint beyond the arm's
+      full stretch (farther from its first joint than the summed lengths of the chain's
+      link offsets, plus the travel of its prismatic joints; :meth:`NumpyChain.reach`) is a
+      ``ValueError`` naming the point and by how much it is out of reach: no posture
+      reaches it, and a run would only end far from it. A target or viapoint within that
+      stretch which inverse kinematics from the start posture does not reach (within
+      ``UNREACHED_DISTANCE``) gets a warning naming it, not an error: joint limits or a
+      fold the arm cannot make may keep it out of reach, but another posture might reach
+      a point this one does not.
     * Differential IK: DLS on the 3 position rows of the Jacobian with damping λ = 0.05 m,
       error feedback to the next desired point, joint positions clamped to the joint limits
       (Barrett's for the WAM); the redundant degrees of freedom take the minimum-norm step
@@ -337,29 +352,85 @@ class ViapointTask(EpisodicTask):
                 f"initial_joints must give {self.kinematics.dof} finite values (joints "
                 f"{', '.join(self.kinematics.joint_names)}), got {initial_joints!r}"
             )
+        self._numpy_chain = NumpyChain(self.kinematics.chain, self.kinematics.base_link)
+        # Points beyond the chain's full stretch are errors before any IK runs.
+        named_points = [("target", self.target)] + [
+            (f"viapoints[{i}][{a}]", point)
+            for i, points in enumerate(alternatives)
+            for a, point in enumerate(points)
+        ]
+        if start is not None:
+            named_points.insert(0, ("start", _point(start, "start", factory)))
+        self._check_within_reach(named_points)
         if start is None:
-            outside = (guess < self.kinematics.joint_lower) | (guess > self.kinematics.joint_upper)
-            if bool(outside.any()):
+            outside = [
+                f"{name} = {format_value(q)} (limits [{format_value(low)}, {format_value(high)}])"
+                for name, q, low, high in zip(
+                    self.kinematics.joint_names,
+                    guess.tolist(),
+                    self.kinematics.joint_lower.tolist(),
+                    self.kinematics.joint_upper.tolist(),
+                    strict=True,
+                )
+                if not low <= q <= high
+            ]
+            if outside:
                 raise ValueError(
-                    f"initial_joints {initial_joints!r} lie outside the joint limits "
-                    f"[{self.kinematics.joint_lower.tolist()}, "
-                    f"{self.kinematics.joint_upper.tolist()}]"
+                    f"initial_joints lie outside the joint limits (rad, or m for prismatic "
+                    f"joints) at {', '.join(outside)}"
                 )
             self.q_start = guess
             self.start = self.kinematics.forward_kinematics(guess[None])[0].detach()
         else:
-            self.start = _point(start, "start", factory)
+            self.start = named_points[0][1]
             tolerance = 1e-8 if self.dtype == torch.float64 else 1e-5  # m
             self.q_start = solve_position_ik(
                 self.kinematics, self.start, guess, tolerance=tolerance
             )
+        self._warn_if_not_reached(named_points[1:] if start is not None else named_points)
         k = self.dynamics.num_attractors
         fractions = torch.linspace(0.0, 1.0, k, **factory) if k > 1 else torch.ones(1, **factory)
         self.theta0 = (self.start + fractions[:, None] * (self.target - self.start)).reshape(-1)
         self.sigma_start = exploration_std**2 * torch.eye(3 * k, **factory)
         self.reward_range = (0.0, 1.0)
         self.set_obstacles(obstacles)
-        self._numpy_chain = None  # the numpy engine's chain, built on its first rollout
+
+    # ------------------------------------------------------------------ reach checks
+    def _check_within_reach(self, named_points: Sequence[tuple[str, Tensor]]) -> None:
+        """Raise ``ValueError`` for a point (``[3]`` m, named) that no joint values reach:
+        outside the ball around the first joint whose radius is the chain's full stretch
+        (:meth:`NumpyChain.reach`)."""
+        lower, upper = _array(self.kinematics.joint_lower), _array(self.kinematics.joint_upper)
+        centre, radius = self._numpy_chain.reach(lower, upper)
+        for name, point in named_points:
+            distance = float(np.linalg.norm(_array(point) - centre))
+            if distance > radius:
+                raise ValueError(
+                    f"{name} {_format_point(point)} is out of the arm's reach (outside its "
+                    f"workspace) by {100 * (distance - radius):.1f} cm: it is "
+                    f"{distance:.3g} m from the first joint of {self.kinematics.robot_name} "
+                    f"(at {_format_point(centre)} in the frame of "
+                    f"{self.kinematics.base_link!r}), and the links from there to "
+                    f"{self.kinematics.end_effector!r} reach {radius:.3g} m at full stretch"
+                )
+
+    def _warn_if_not_reached(self, named_points: Sequence[tuple[str, Tensor]]) -> None:
+        """Warn for each point (``[3]`` m, named) that inverse kinematics from ``q_start``
+        (:meth:`NumpyChain.inverse_kinematics`) ends more than ``UNREACHED_DISTANCE`` from."""
+        lower, upper = _array(self.kinematics.joint_lower), _array(self.kinematics.joint_upper)
+        points = np.stack([_array(point) for _, point in named_points])
+        _, distances = self._numpy_chain.inverse_kinematics(
+            points, _array(self.q_start), lower, upper
+        )
+        for (name, point), distance in zip(named_points, distances.tolist(), strict=True):
+            if distance > UNREACHED_DISTANCE:
+                warnings.warn(
+                    f"{name} {_format_point(point)} may be out of the arm's reach: inverse "
+                    f"kinematics from the start posture ends {100 * distance:.1f} cm from it "
+                    "(joint limits, or a point inside the chain's stretch that no posture "
+                    "reaches); paths through it are likely to miss it",
+                    stacklevel=3,
+                )
 
     # ------------------------------------------------------------------ obstacles
     def set_obstacles(self, obstacles: Sequence[Mapping]) -> None:
@@ -487,21 +558,15 @@ class ViapointTask(EpisodicTask):
 
     def _trajectory_numpy(self, theta: Tensor) -> Tensor:
         """:meth:`trajectory` in the numpy engine (float64), returned in the task's dtype."""
-        if self._numpy_chain is None:
-            self._numpy_chain = NumpyChain(self.kinematics.chain, self.kinematics.base_link)
-
-        def array(tensor: Tensor):
-            return tensor.detach().cpu().double().numpy()
-
-        goal = array(self.target) if self.end_at_target else None
-        desired = self.dynamics.rollout_numpy(array(theta), array(self.start), goal)
+        goal = _array(self.target) if self.end_at_target else None
+        desired = self.dynamics.rollout_numpy(_array(theta), _array(self.start), goal)
         path = track_path_numpy(
             self._numpy_chain,
-            array(self.q_start),
+            _array(self.q_start),
             desired,
             self.ik_damping,
-            array(self.kinematics.joint_lower),
-            array(self.kinematics.joint_upper),
+            _array(self.kinematics.joint_lower),
+            _array(self.kinematics.joint_upper),
         )
         return torch.from_numpy(path).to(dtype=self.dtype)
 
@@ -596,15 +661,23 @@ class ViapointTask(EpisodicTask):
         """A 3-D matplotlib figure of the end-effector paths the arm makes for the policies
         ``theta: [K, 3K']``, with the viapoints (one colour per pass time), start and target.
 
-        ``labels`` (one per policy) replace the default legend entries (route and return).
-        The figure is a bare :class:`matplotlib.figure.Figure` on the Agg canvas (no pyplot
-        state, no display): TensorBoard's ``add_figure`` renders and closes it, or call
-        ``plt.close(figure)`` / drop the reference.
+        ``labels`` (one per policy) replace the default legend entries (route and return);
+        ``title`` replaces the default title (the arm and the number of policies).
+
+        The figure is sized for a TensorBoard image card, which shows an image at its own
+        pixel size up to the card's width: 600 px wide (6 in at 100 dpi), the 3-D box zoomed
+        to fill the axes, a few ticks per axis, and the legend below the axes (paths in the
+        left column, viapoints, obstacle, start and target in the right one), the figure
+        growing downwards with the number of entries. It is a bare
+        :class:`matplotlib.figure.Figure` on the Agg canvas (no pyplot state, no display):
+        TensorBoard's ``add_figure`` renders and closes it, or call ``plt.close(figure)`` /
+        drop the reference.
         """
         import matplotlib
-        import numpy as np
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
+        from matplotlib.lines import Line2D
+        from matplotlib.ticker import MaxNLocator
 
         with torch.no_grad():
             path = self.trajectory(theta)
@@ -618,26 +691,39 @@ class ViapointTask(EpisodicTask):
             ]
         if len(labels) != path.shape[0]:
             raise ValueError(f"labels must give one entry per policy ({path.shape[0]})")
-        figure = Figure(figsize=(10.0, 6.0))
+        # Laid out for TensorBoard, which shows an image at its own pixel size up to the width
+        # of its card: 600 px wide at 100 dpi, 8-9 pt text, the legend below the axes.
+        rows = max(path.shape[0], len(self.num_alternatives) + 2 + bool(self.obstacles))
+        legend_height = 0.2 + 0.165 * rows  # in: 8 pt lines
+        axes_height = 3.1  # in
+        height = axes_height + legend_height
+        figure = Figure(figsize=(6.0, height), dpi=100)
         FigureCanvasAgg(figure)
-        ax = figure.add_subplot(projection="3d")
+        ax = figure.add_axes(
+            (0.0, legend_height / height, 1.0, axes_height / height), projection="3d"
+        )
         cmap = matplotlib.colormaps["tab10"]
-        for k in range(path.shape[0]):
-            ax.plot(*path[k].T, color=cmap(k % 10), lw=1.6, label=labels[k])
+        paths = [
+            ax.plot(*path[k].T, color=cmap(k % 10), lw=1.6, label=labels[k])[0]
+            for k in range(path.shape[0])
+        ]
+        points = []
         markers = ("o", "s", "^", "D", "v", "P")
         names = self.alternative_names
         for i, count in enumerate(self.num_alternatives):
-            points = self.viapoints[i, :count].double().cpu().numpy()
-            ax.scatter(
-                *points.T,
-                s=70,
-                marker=markers[i % len(markers)],
-                facecolors="none",
-                edgecolors="black",
-                linewidths=1.5,
-                label=f"viapoints t = {self.pass_times[i]:g} s",
+            viapoints = self.viapoints[i, :count].double().cpu().numpy()
+            points.append(
+                ax.scatter(
+                    *viapoints.T,
+                    s=55,
+                    marker=markers[i % len(markers)],
+                    facecolors="none",
+                    edgecolors="black",
+                    linewidths=1.3,
+                    label=f"viapoints t = {self.pass_times[i]:g} s",
+                )
             )
-            for point, name in zip(points, names[i], strict=True):
+            for point, name in zip(viapoints, names[i], strict=True):
                 ax.text(*point, f" {name}", fontsize=8, color="0.25")
         # Obstacles as wireframe spheres; their extremes join the box so the scale stays equal.
         u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 24), np.linspace(0, np.pi, 12))
@@ -646,26 +732,83 @@ class ViapointTask(EpisodicTask):
         for j, obstacle in enumerate(self.obstacles):
             centre, radius = np.array(obstacle["centre"]), obstacle["radius"]
             sphere = centre[:, None, None] + radius * unit
-            label = "obstacle" if j == 0 else None
-            ax.plot_wireframe(*sphere, color="0.35", lw=0.5, alpha=0.5, label=label)
+            wireframe = ax.plot_wireframe(
+                *sphere, color="0.35", lw=0.5, alpha=0.5, label="obstacle"
+            )
+            if j == 0:
+                points.append(wireframe)
             extremes.append(centre + radius * np.concatenate([np.eye(3), -np.eye(3)]))
-        start, target = self.start.double().cpu().numpy(), self.target.double().cpu().numpy()
-        ax.scatter(*start, s=60, color="green", marker="*", label="start")
-        ax.scatter(*target, s=60, color="red", marker="*", label="target")
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
-        arm = "WAM" if self.kinematics.urdf_path == URDF_PATH.resolve() else None
-        arm = arm or self.kinematics.robot_name
-        ax.set_title(title or f"{arm} end-effector paths of {path.shape[0]} policies")
+        start, target = _array(self.start), _array(self.target)
+        points.append(ax.scatter(*start, s=70, color="green", marker="*", label="start"))
+        points.append(ax.scatter(*target, s=70, color="red", marker="*", label="target"))
         everything = np.concatenate(
             [path.reshape(-1, 3), self.viapoints.reshape(-1, 3).double().cpu(), *extremes]
         )
-        ax.set_box_aspect(np.ptp(everything, axis=0) + 0.02)  # equal scale on x, y, z
+        aspect = np.ptp(everything, axis=0) + 0.02  # equal scale on x, y, z
+        for axis, name, length in zip((ax.xaxis, ax.yaxis, ax.zaxis), "xyz", aspect, strict=True):
+            # Up to 5 ticks on the longest side, fewer on shorter ones: no crowded labels.
+            bins = int(np.clip(round(5 * length / aspect.max()), 2, 5))
+            axis.set_major_locator(MaxNLocator(nbins=bins, steps=[1, 2, 5, 10]))
+            axis.set_label_text(f"{name} [m]", fontsize=9)
+            axis.labelpad = 0
+        ax.tick_params(labelsize=8, pad=0)
         ax.view_init(elev=20, azim=-35)
-        ax.legend(loc="center left", fontsize=8, bbox_to_anchor=(1.02, 0.5))
-        figure.subplots_adjust(left=0.0, right=0.62, bottom=0.05, top=0.95)
+        _zoom_to_fill(ax, aspect, top_margin=22.0)  # px: the band the title goes in
+        arm = "WAM" if self.kinematics.urdf_path == URDF_PATH.resolve() else None
+        arm = arm or self.kinematics.robot_name
+        policies = f"{path.shape[0]} {'policy' if path.shape[0] == 1 else 'policies'}"
+        # In the band at the top of the axes, which reach the figure's top edge.
+        ax.set_title(title or f"{arm} end-effector paths of {policies}", fontsize=10, y=0.97, pad=0)
+        # Paths in the left column, the points in the right one (blank entries pad them).
+        blank = Line2D([], [], linestyle="none", label=" ")
+        handles = paths + [blank] * (rows - len(paths)) + points + [blank] * (rows - len(points))
+        ax.legend(
+            handles=handles,
+            loc="lower center",
+            bbox_to_anchor=(0.5, 0.0),
+            bbox_transform=figure.transFigure,
+            ncol=2,
+            fontsize=8,
+            frameon=False,
+            borderaxespad=0.4,
+            columnspacing=2.0,
+            handlelength=1.6,
+        )
         return figure
+
+
+def _zoom_to_fill(ax, box_aspect: np.ndarray, top_margin: float) -> None:
+    """Zoom the 3-D axes ``ax`` (box aspect ``[3]``) so that its box, with its ticks and axis
+    labels, fills the rectangle the axes were given, less ``top_margin`` px at the
+    top. mplot3d draws into the largest square centred in that rectangle, at a zoom that
+    leaves wide margins; on a wide (or tall) rectangle, the box can grow beyond the square.
+    Measured on a draw (labels keep their size in px while the box scales, hence the second
+    pass)."""
+    from matplotlib.transforms import Bbox
+    from mpl_toolkits.mplot3d import proj3d
+
+    figure = ax.figure
+    given = ax.get_position(original=True).transformed(figure.transFigure)  # px
+    centre_x, centre_y = given.x0 + 0.5 * given.width, given.y0 + 0.5 * given.height
+    limits = (ax.get_xlim3d(), ax.get_ylim3d(), ax.get_zlim3d())
+    corners = np.array(list(itertools.product(*limits))).T  # [3, 8]
+    zoom = 1.0
+    for _ in range(2):
+        ax.set_box_aspect(box_aspect, zoom=zoom)
+        figure.canvas.draw()
+        renderer = figure.canvas.get_renderer()
+        x, y, _ = proj3d.proj_transform(*corners, ax.get_proj())
+        box = ax.transData.transform(np.column_stack([x, y]))  # [8, 2] px
+        boxes = [Bbox([box.min(0), box.max(0)])]
+        boxes += [axis.get_tightbbox(renderer) for axis in (ax.xaxis, ax.yaxis, ax.zaxis)]
+        drawn = Bbox.union([box for box in boxes if box is not None and box.width > 0])
+        zoom *= min(
+            (centre_x - given.x0) / max(centre_x - drawn.x0, 1.0),
+            (given.x1 - centre_x) / max(drawn.x1 - centre_x, 1.0),
+            (centre_y - given.y0) / max(centre_y - drawn.y0, 1.0),
+            (given.y1 - top_margin - centre_y) / max(drawn.y1 - centre_y, 1.0),
+        )
+    ax.set_box_aspect(box_aspect, zoom=0.98 * zoom)
 
 
 def _make_kinematics(
@@ -707,19 +850,33 @@ def _plain(value):
     return [_plain(item) for item in value]
 
 
+def _array(tensor: Tensor) -> np.ndarray:
+    """A tensor as a float64 numpy array on the CPU."""
+    return tensor.detach().cpu().double().numpy()
+
+
+def _format_point(point: Tensor | np.ndarray) -> str:
+    """``[0.5, -0.35, 0]``: a point for a message, 4 significant digits (no float32 noise)."""
+    return "[" + ", ".join(format_value(x) for x in point.tolist()) + "]"
+
+
 def _point(value: Sequence[float], name: str, factory: dict) -> Tensor:
-    point = torch.as_tensor(value, **factory)
-    if point.shape != (3,) or not torch.isfinite(point).all():
-        raise ValueError(f"{name} must be a finite [x, y, z] point, got {value!r}")
+    try:
+        point = torch.as_tensor(value, **factory)
+    except (TypeError, ValueError, RuntimeError):
+        point = None  # ragged or not numbers
+    if point is None or point.shape != (3,) or not torch.isfinite(point).all():
+        raise ValueError(f"{name} must be a finite [x, y, z] point (m), got {value!r}")
     return point
 
 
 def _alternatives(value: Sequence[Sequence[float]], index: int, factory: dict) -> Tensor:
-    points = torch.as_tensor(value, **factory)
-    if points.dim() != 2 or points.shape[0] < 1 or points.shape[1] != 3:
+    """``[A, 3]``: the alternatives ``viapoints[index]``, checked one point at a time so that
+    an error names the point."""
+    layout = "(viapoints: per pass time, a list of >= 1 alternative [x, y, z] points)"
+    if isinstance(value, str) or not hasattr(value, "__len__") or len(value) == 0:
         raise ValueError(
-            f"viapoints[{index}] must be a list of >= 1 [x, y, z] alternatives, got {value!r}"
+            f"viapoints[{index}] must be a list of alternatives, got {value!r} {layout}"
         )
-    if not torch.isfinite(points).all():
-        raise ValueError(f"viapoints[{index}] contains non-finite values")
-    return points
+    points = [_point(point, f"viapoints[{index}][{a}]", factory) for a, point in enumerate(value)]
+    return torch.stack(points)

@@ -1,4 +1,7 @@
-"""The gymnasium environments: registration, env checker, same returns as the batched tasks."""
+"""The gymnasium environments: registration and specs, env checker, same returns as the batched
+tasks, observation bounds, rendering (rgb_array frames, RenderCollection, RecordVideo, human)."""
+
+import warnings
 
 import dipole_torch.tasks  # noqa: F401  (registers the environments)
 import gymnasium as gym
@@ -7,16 +10,43 @@ import pytest
 import torch
 from dipole_torch.tasks.cartpole import CartPoleTask
 from dipole_torch.tasks.mountain_car import MountainCarTask
+from dipole_torch.tasks.rendering import AXLE_COLOR, POLE_COLOR, WHEEL_COLOR
+from gymnasium.error import DependencyNotInstalled
 from gymnasium.utils.env_checker import check_env
+from gymnasium.utils.passive_env_checker import env_render_passive_checker
 
 ENV_IDS = ["dipole/CartPole-v0", "dipole/MountainCar-v0"]
+DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_env_checker_passes(env_id):
+def test_env_checker_passes_without_warnings(env_id):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = gym.make(env_id)
+        # The render check would also make render_mode="human", which needs a display: the
+        # rgb_array mode is checked on its own below (and everything with a display, further on).
+        check_env(env.unwrapped, skip_render_check=True)
+        env.close()
+        rendering = gym.make(env_id, render_mode="rgb_array")
+        rendering.reset(seed=0)
+        env_render_passive_checker(rendering.unwrapped)
+        rendering.close()
+
+
+@pytest.mark.parametrize(
+    ("env_id", "horizon", "threshold"),
+    [("dipole/CartPole-v0", 1000, 950.0), ("dipole/MountainCar-v0", 100, 50.0)],
+)
+def test_specs_carry_the_horizon_and_the_solved_threshold(env_id, horizon, threshold):
+    spec = gym.spec(env_id)
+    assert spec.max_episode_steps == horizon
+    assert spec.reward_threshold == threshold
     env = gym.make(env_id)
-    check_env(env.unwrapped, skip_render_check=True)
-    env.close()
+    assert env.spec.max_episode_steps == env.unwrapped.task.steps == horizon
+    assert env.spec.reward_threshold == threshold
+    # The largest return the task allows is above the threshold.
+    assert env.unwrapped.task.reward_range[1] > threshold
 
 
 def _gym_return(env, task, theta, initial_state, to_action):
@@ -41,8 +71,11 @@ def test_cartpole_env_return_equals_batched_rollout(theta, engine):
     theta = torch.tensor(theta)
     start = task.sample_initial_state(1, torch.Generator().manual_seed(5))[0]
     expected = task.evaluate(theta.unsqueeze(0), initial_state=start).item()
-    got = _gym_return(env, task, theta, start.numpy(), lambda u: u.numpy().reshape(1))
-    assert got == expected
+
+    def push(u):  # the policy's force in newtons as the action, a fraction of force_limit
+        return (u.double() / task.force_limit).numpy().reshape(1)
+
+    assert _gym_return(env, task, theta, start.numpy(), push) == expected
 
 
 @pytest.mark.parametrize(
@@ -70,15 +103,222 @@ def test_envs_use_the_task_physics_and_seeding():
     assert first[2] != 0 and abs(first[2]) <= 0.05
 
 
+@pytest.mark.parametrize("force_limit", [10.0, 30.0])
+def test_cartpole_observations_stay_in_the_space_from_extreme_starts(force_limit):
+    # Starts at the corners of start_space (the fastest live states) under full pushes, until
+    # each episode fails: every observation, the failing one included, lies in the space.
+    env = gym.make("dipole/CartPole-v0", force_limit=force_limit).unwrapped
+    high = env.start_space.high
+    rng = np.random.default_rng(0)
+    for corner in range(16):
+        signs = np.array([1.0 if corner >> bit & 1 else -1.0 for bit in range(4)])
+        for scheme in ("with", "against", "random"):
+            observation, _ = env.reset(options={"initial_state": signs * high})
+            assert env.observation_space.contains(observation)
+            done = False
+            while not done:
+                if scheme == "random":
+                    push = rng.choice([-1.0, 1.0])
+                else:
+                    push = np.sign(observation[3] or 1.0) * (1 if scheme == "with" else -1)
+                observation, _, terminated, truncated, _ = env.step(np.array([push]))
+                assert env.observation_space.contains(observation), (corner, scheme)
+                done = terminated or truncated
+    # From the task's own starts the episode does not fail at once.
+    observation, _ = env.reset(seed=0)
+    assert env.observation_space.contains(observation)
+
+
 def test_env_bad_inputs():
     env = gym.make("dipole/CartPole-v0").unwrapped
     with pytest.raises(RuntimeError, match="reset"):
         env.step(np.zeros(1, dtype=np.float32))
     with pytest.raises(ValueError, match="initial_state"):
         env.reset(options={"initial_state": [0.0, 0.0]})
+    with pytest.raises(ValueError, match="initial_state must lie in start_space"):
+        env.reset(options={"initial_state": [3.0, 0.0, 0.0, 0.0]})  # already failed
+    with pytest.raises(ValueError, match="initial_state must lie in start_space"):
+        env.reset(options={"initial_state": [0.0, 0.0, np.nan, 0.0]})
     with pytest.raises(ValueError, match="options"):
         env.reset(options={"bogus": 1})
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action must hold one number"):
+        env.step(np.zeros(2, dtype=np.float32))
+    with pytest.raises(ValueError, match="action must be finite"):
+        env.step(np.array([np.inf]))
+    env.reset(options={"initial_state": [0.0, 0.0, 0.2, 5.0]})
+    _, _, terminated, _, _ = env.step(np.ones(1))
+    assert terminated
+    with pytest.raises(RuntimeError, match="episode has ended"):
+        env.step(np.ones(1))
     car = gym.make("dipole/MountainCar-v0").unwrapped
+    with pytest.raises(ValueError, match="initial_state must lie in start_space"):
+        car.reset(options={"initial_state": [0.0, 0.1]})
+    with pytest.raises(ValueError, match="short of the goal"):
+        car.reset(options={"initial_state": [0.5, 0.0]})
+    car.reset(options={"initial_state": [0.4999, 0.0]})  # just short of it: a start
     car.reset(seed=0)
     with pytest.raises(ValueError, match="action"):
         car.step(3)
+
+
+def test_cartpole_action_is_the_push_as_a_fraction_of_force_limit():
+    env = gym.make("dipole/CartPole-v0").unwrapped
+    assert (env.action_space.low, env.action_space.high) == (-1.0, 1.0)
+    start = [0.0, 0.0, 0.01, 0.0]
+    task = env.task
+    for action, newtons in ((0.25, 2.5), (1.0, 10.0), (3.0, 10.0), (-7.0, -10.0)):
+        env.reset(options={"initial_state": start})
+        observation, *_ = env.step(np.array([action]))
+        state = torch.tensor([start], dtype=task.dtype)
+        expected = task.step(state, torch.tensor([newtons], dtype=task.dtype))[0].numpy()
+        np.testing.assert_array_equal(observation, expected)
+
+
+# ------------------------------------------------------------------ rendering
+def _centroid_x(frame, color):
+    columns = np.nonzero(np.all(frame == np.array(color, dtype=np.uint8), axis=-1))[1]
+    assert columns.size > 0, f"no pixel of {color}"
+    return columns.mean()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_rgb_array_frames_are_uint8_images_and_the_fps_is_the_time_step(env_id):
+    env = gym.make(env_id, render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
+    assert isinstance(frame, np.ndarray)
+    assert frame.shape == (400, 600, 3) and frame.dtype == np.uint8
+    assert (frame == 255).all(axis=-1).mean() > 0.3  # a white background with a drawing on it
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 5
+    fps = env.metadata["render_fps"]
+    assert fps == (1 / CartPoleTask.tau if "CartPole" in env_id else 30)
+    assert env.metadata["render_modes"] == ["human", "rgb_array"]
+
+
+def test_cartpole_frames_follow_the_cart_and_the_pole():
+    env = gym.make("dipole/CartPole-v0", render_mode="rgb_array").unwrapped
+
+    def frame(x, angle):
+        env.reset(options={"initial_state": [x, 0.0, angle, 0.0]})
+        return env.render()
+
+    centre, right, leaning = frame(0.0, 0.0), frame(1.0, 0.0), frame(0.0, 0.15)
+    # The track spans ±x_threshold across the 600 pixels: 1 m is 125 pixels.
+    assert _centroid_x(centre, AXLE_COLOR) == pytest.approx(300, abs=1)
+    assert _centroid_x(right, AXLE_COLOR) == pytest.approx(425, abs=1)
+    assert _centroid_x(leaning, AXLE_COLOR) == pytest.approx(300, abs=1)
+    # A pole leaning right (φ > 0) has its pixels right of the axle; upright, centred on it.
+    assert _centroid_x(centre, POLE_COLOR) == pytest.approx(300, abs=1)
+    assert _centroid_x(leaning, POLE_COLOR) > 300 + 5
+    assert _centroid_x(frame(0.0, -0.15), POLE_COLOR) < 300 - 5
+    assert not np.array_equal(centre, frame(0.0, 0.001))  # any change of state shows
+
+
+def test_mountain_car_frames_follow_the_car():
+    env = gym.make("dipole/MountainCar-v0", render_mode="rgb_array").unwrapped
+    wheels = []
+    for position in (-1.2, -0.5, 0.0, 0.4):
+        env.reset(options={"initial_state": [position, 0.0]})
+        wheels.append(_centroid_x(env.render(), WHEEL_COLOR))
+    assert np.all(np.diff(wheels) > 50)
+    env.reset(options={"initial_state": [-0.5, 0.0]})
+    valley = env.render()
+    env.reset(options={"initial_state": [-0.5, 0.05]})
+    assert np.array_equal(valley, env.render())  # the velocity does not show
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_rendering_leaves_observations_and_rewards_alone(env_id):
+    runs = []
+    for render_mode in (None, "rgb_array"):
+        env = gym.make(env_id, render_mode=render_mode)
+        env.action_space.seed(3)
+        observation, _ = env.reset(seed=3)
+        record, done = [observation], False
+        while not done:
+            if render_mode is not None:
+                env.render()
+            observation, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+            record += [observation, reward]
+            done = terminated or truncated
+        runs.append(record)
+    assert len(runs[0]) == len(runs[1])
+    for plain, rendered in zip(*runs, strict=True):
+        assert np.array_equal(plain, rendered)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_render_collection_keeps_a_frame_per_reset_and_step(env_id):
+    env = gym.make(env_id, render_mode="rgb_array_list", max_episode_steps=5)
+    env.reset(seed=0)
+    done, steps = False, 0
+    while not done:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        steps += 1
+        done = terminated or truncated
+    frames = env.render()
+    assert len(frames) == steps + 1
+    assert all(frame.shape == (400, 600, 3) and frame.dtype == np.uint8 for frame in frames)
+    assert not np.array_equal(frames[0], frames[-1])
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_record_video_writes_an_episode(env_id, tmp_path):
+    pytest.importorskip("moviepy", reason="gymnasium's RecordVideo writes videos with moviepy")
+    from gymnasium.wrappers import RecordVideo
+
+    env = gym.make(env_id, render_mode="rgb_array", max_episode_steps=10)
+    env = RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda episode: True)
+    env.reset(seed=0)
+    done = False
+    while not done:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        done = terminated or truncated
+    env.close()
+    (video,) = (tmp_path / "videos").glob("*.mp4")
+    assert video.stat().st_size > 0
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_unknown_render_mode_is_refused_naming_the_valid_ones(env_id):
+    message = "render_mode must be None or one of 'human', 'rgb_array', got 'ansi'"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # gymnasium.make's own warning about the mode
+        with pytest.raises(ValueError, match=message):
+            gym.make(env_id, render_mode="ansi")
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_human_mode_is_refused_without_a_display(env_id, monkeypatch):
+    for name in DISPLAY_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    try:
+        import pygame  # noqa: F401
+    except ImportError:
+        with pytest.raises(DependencyNotInstalled, match='render_mode="human".*pip install pygame'):
+            gym.make(env_id, render_mode="human")
+    else:
+        with pytest.raises(RuntimeError, match='render_mode="human" needs a display'):
+            gym.make(env_id, render_mode="human")
+        monkeypatch.setenv("DISPLAY", ":4093")  # named, but no server there
+        with pytest.raises(RuntimeError, match='render_mode="human" found no display'):
+            gym.make(env_id, render_mode="human")
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_human_mode_shows_frames_in_a_window(env_id, monkeypatch):
+    pytest.importorskip("pygame", reason='render_mode="human" draws with pygame')
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")  # a window without a screen
+    env = gym.make(env_id, render_mode="human", max_episode_steps=3)
+    env.reset(seed=0)
+    done = False
+    while not done:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        done = terminated or truncated
+    assert env.render() is None
+    env.close()
+    env.close()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(gym.make(env_id).unwrapped)  # every render mode included

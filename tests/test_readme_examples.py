@@ -1,29 +1,25 @@
-"""The README's Pyro-prior and gymnasium examples run as printed, and print what they claim."""
+"""The Pyro-prior and gymnasium examples of the user guide (docs/guide/pyro.md,
+docs/guide/gymnasium.md) run as printed, and print what they claim."""
 
 import os
 import re
 from pathlib import Path
 
 import torch
+from test_docs_examples import DOCS, block
 
 from dipole_torch import GaussianMixture
 
-README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
 
-
-def _example(marker: str) -> str:
-    block = re.search(
-        rf"<!-- {marker} -->\s*```python\n(.*?)```\s*<!-- /{marker} -->", README, re.S
-    )
-    assert block, f"README lost its {marker}"
-    return block.group(1)
+def _example(page: str, marker: str) -> str:
+    return block(DOCS / page, marker).code
 
 
 def _run(code: str, where: Path) -> None:
     cwd = os.getcwd()
     os.chdir(where)
     try:
-        exec(compile(code, "README example", "exec"), {})
+        exec(compile(code, "docs example", "exec"), {})
     finally:
         os.chdir(cwd)
 
@@ -37,7 +33,7 @@ def test_pyro_prior_example_keeps_only_the_policies_the_change_allows(tmp_path, 
     run = tmp_path / "outputs" / "multimodal" / "dipole" / "seed0_2026-01-01_00-00-00"
     run.mkdir(parents=True)
     torch.save({"policies": policies.state_dict()}, run / "policies.pt")
-    _run(_example("pyro-prior-example"), tmp_path)
+    _run(_example("guide/pyro.md", "pyro-prior-example"), tmp_path)
     out = capsys.readouterr().out
     share = [float(p) for p in re.search(r"change: \[(.*)\]", out).group(1).split(",")]
     # Policies 1 and 2 sit at θ_0 = -0.7, 14 widths behind the obstacle: no share left.
@@ -47,7 +43,7 @@ def test_pyro_prior_example_keeps_only_the_policies_the_change_allows(tmp_path, 
 
 
 def test_gym_example_balances_the_pole_and_reaches_the_goal(tmp_path, capsys):
-    _run(_example("gym-example"), tmp_path)
+    _run(_example("guide/gymnasium.md", "gym-example"), tmp_path)
     out = capsys.readouterr().out
     cartpole = float(re.search(r"cart-pole return: (\S+)", out).group(1))
     car = float(re.search(r"mountain-car return: (\S+)", out).group(1))

@@ -338,3 +338,42 @@ def test_numpy_engine_tracks_like_the_torch_engine_on_another_arm(urdf_path):
     torch.testing.assert_close(
         task.trajectory(theta), torch_task.trajectory(theta), atol=1e-9, rtol=0
     )
+
+
+def test_reach_bounds_every_posture_and_is_the_full_stretch(tmp_path, urdf_path):
+    """NumpyChain.reach: no posture within the limits puts the end effector outside the
+    ball (the mixed chain's prismatic travel included), and on the four-joint arm, whose
+    links can line up, the radius is their summed lengths (0.4 + 0.35 + 0.1 m) around the
+    shoulder (0.3 m above the base), reached when the arm is straight."""
+    path = tmp_path / "mixed.urdf"
+    path.write_text(MIXED_URDF)
+    arm = ArmKinematics(path, "tip", dtype=F64)
+    lower, upper = arm.joint_lower.numpy(), arm.joint_upper.numpy()
+    chain = NumpyChain(arm.chain, arm.base_link)
+    centre, radius = chain.reach(lower, upper)
+    q = np.random.default_rng(2).uniform(np.maximum(lower, -4), np.minimum(upper, 4), (512, 4))
+    distances = np.linalg.norm(chain.forward_kinematics(q) - centre, axis=-1)
+    assert distances.max() <= radius and distances.max() > 0.5 * radius
+    four = ArmKinematics(urdf_path, "tool", dtype=F64)
+    chain = NumpyChain(four.chain, four.base_link)
+    centre, radius = chain.reach(four.joint_lower.numpy(), four.joint_upper.numpy())
+    np.testing.assert_allclose(centre, [0.0, 0.0, 0.3], atol=1e-7)
+    assert radius == pytest.approx(0.85, abs=1e-7)
+    straight = chain.forward_kinematics(np.zeros((1, 4)))[0]
+    assert np.linalg.norm(straight - centre) == pytest.approx(radius, abs=1e-7)
+
+
+def test_numpy_inverse_kinematics_reaches_reachable_points(urdf_path):
+    """From one guess, to the end-effector positions of postures within the limits: within
+    1e-6 m (the joint values it finds stay within the limits); to a point beyond the reach,
+    it ends at least that far away."""
+    arm = ArmKinematics(urdf_path, "tool", dtype=F64)
+    lower, upper = arm.joint_lower.numpy(), arm.joint_upper.numpy()
+    chain = NumpyChain(arm.chain, arm.base_link)
+    rng = np.random.default_rng(3)
+    postures = rng.uniform([-3.0, -1.0, 0.3, -1.0], [3.0, 1.0, 2.0, 1.0], size=(8, 4))
+    points = np.concatenate([chain.forward_kinematics(postures), [[1.5, 0.0, 0.3]]])
+    q, distances = chain.inverse_kinematics(points, np.array([0.0, 0.6, 1.2, 0.3]), lower, upper)
+    assert distances[:-1].max() < 1e-6 and distances[-1] >= 1.5 - 0.85 - 1e-9
+    assert bool(((q >= lower) & (q <= upper)).all())
+    np.testing.assert_allclose(chain.forward_kinematics(q)[:-1], points[:-1], atol=1e-6)

@@ -3,10 +3,13 @@ on both kinematics paths, config."""
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
+import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from dipole_torch.models.kinematics import ArmKinematics
@@ -220,6 +223,75 @@ def test_bad_inputs_raise(task):
         ViapointTask(goal_time=3.0)
 
 
+DEFAULT_VIAPOINTS = [
+    [[0.5, -0.29, -0.1], [0.5, -0.29, 0.1]],
+    [[0.4, 0.06, 0.0], [0.6, 0.06, 0.0]],
+    [[0.5, 0.34, -0.1], [0.5, 0.34, 0.1]],
+]
+
+
+def test_the_default_layout_is_within_reach_without_a_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ViapointTask()
+
+
+def test_points_beyond_the_arms_stretch_are_errors():
+    """The WAM's links reach 0.957 m from its shoulder at full stretch (0.55 m upper arm
+    with its 4.5 cm offset, 4.5 cm elbow offset, 0.3 m forearm, 6 cm tool): a point farther
+    is out of reach in every posture, and the error says by how much."""
+    with pytest.raises(
+        ValueError,
+        match=r"target \[1\.5, 0, 0\] is out of the arm's reach \(outside its workspace\) by "
+        r"54\.3 cm: it is 1\.5 m from the first joint of barrett_wam_7dof .* reach 0\.957 m",
+    ):
+        ViapointTask(target=[1.5, 0.0, 0.0])
+    far = copy.deepcopy(DEFAULT_VIAPOINTS)
+    far[2][1] = [0.5, 0.34, 1.2]
+    with pytest.raises(ValueError, match=r"viapoints\[2\]\[1\] \[0\.5, 0\.34, 1\.2\] is out of"):
+        ViapointTask(viapoints=far)
+
+
+def test_points_inverse_kinematics_does_not_reach_warn():
+    """5 cm above the shoulder is within the links' stretch, but the elbow cannot fold the
+    forearm back that far (joint 4 stops at 3.1 rad): a warning naming the point and how far
+    from it inverse kinematics from the start posture ends. Not an error: another posture
+    might reach a point that IK from this one does not."""
+    with pytest.warns(
+        UserWarning,
+        match=r"target \[0, 0, 0\.05\] may be out of the arm's reach: inverse kinematics from "
+        r"the start posture ends \d+\.\d cm from it",
+    ):
+        ViapointTask(target=[0.0, 0.0, 0.05])
+
+
+def test_input_errors_name_the_argument_and_the_joint():
+    ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
+    ragged[1][1] = [0.6, 0.06]
+    with pytest.raises(
+        ValueError, match=r"viapoints\[1\]\[1\] must be a finite \[x, y, z\] point \(m\)"
+    ):
+        ViapointTask(viapoints=ragged)
+    with pytest.raises(ValueError, match=r"viapoints\[0\] must be a list of alternatives"):
+        ViapointTask(viapoints=[0.5, [[0.4, 0.06, 0.0]], [[0.5, 0.34, 0.1]]])
+    with pytest.raises(ValueError, match=r"start must be a finite \[x, y, z\] point"):
+        ViapointTask(start=[0.5, "left", 0.0])
+    # The joint out of its limits is named; limits print as the URDF gives them.
+    with pytest.raises(
+        ValueError,
+        match=r"initial_joints lie outside the joint limits .* at wam_j4 = 3\.5 "
+        r"\(limits \[-0\.9, 3\.1\]\)$",
+    ):
+        ViapointTask(start=None, initial_joints=[0.0, 0.6, 0.0, 3.5, 0.0, 0.0, 0.0])
+    lower = [-2.6, -2.0, -2.8, 3.2, -4.76, -1.6, -3.0]
+    with pytest.raises(
+        ValueError, match=r"lower exceeds upper for joint\(s\) wam_j4 \[3\.2, 3\.1\] of wam7"
+    ):
+        ViapointTask(joint_lower=lower)
+    with pytest.raises(ValueError, match=r"joint_upper must be 7 numbers"):
+        ViapointTask(joint_upper=["a"] * 7)
+
+
 def test_analytic_fast_path_gives_the_default_paths():
     """kinematics="wam_dh" against the default pytorch-kinematics path (the torch engine's
     kinematics): same start posture (to the start IK's tolerance), same arm paths and rewards
@@ -265,8 +337,67 @@ def test_describe_and_plot_policies(task):
     assert "start" in texts and "target" in texts and any("below / near" in t for t in texts)
     figure.canvas.draw()  # renders on Agg, no display
     matplotlib.pyplot.close(figure)
-    with pytest.raises(ValueError, match="labels"):
-        task.plot_policies(thetas[:2], labels=["one"])
+
+
+def figure_layout_problems(figure, margins: bool = True) -> list[str]:
+    """What makes a rendered policy figure hard to read in a TensorBoard card: wider than a
+    card, more than 5 ticks on an axis, the legend or the title over an axis' ticks or
+    label, the title outside the image, and with ``margins`` wide empty margins (the
+    drawing, non-white pixels, spanning less than 90 % of the height or 85 % of the
+    width)."""
+    figure.canvas.draw()
+    width, height = figure.canvas.get_width_height()
+    problems = [] if 500 <= width <= 700 else [f"{width} px wide"]
+    ax = figure.axes[0]
+    renderer = figure.canvas.get_renderer()
+    legend = ax.get_legend().get_window_extent(renderer)
+    title = ax.title.get_window_extent(renderer)
+    if not (title.x0 >= 0 and title.y0 >= 0 and title.x1 <= width and title.y1 <= height):
+        problems.append(f"title outside the image: {title}")
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        low, high = sorted(axis.get_view_interval())
+        shown = [
+            label
+            for location, label in zip(axis.get_majorticklocs(), axis.get_ticklabels(), strict=True)
+            if low <= location <= high  # (the locator also places ticks beyond the view)
+        ]
+        if len(shown) > 5:
+            problems.append(f"{len(shown)} ticks on {axis.axis_name}")
+        for text in [*shown, axis.label]:
+            extent = text.get_window_extent(renderer)
+            for name, box in (("legend", legend), ("title", title)):
+                if box.overlaps(extent):
+                    problems.append(f"{name} over {text.get_text()!r}")
+    image = np.asarray(figure.canvas.buffer_rgba())[..., :3]
+    drawn = (image < 250).any(axis=-1)
+    rows, columns = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    spans = (rows[-1] - rows[0]) / height, (columns[-1] - columns[0]) / width
+    if margins and (spans[0] < 0.9 or spans[1] < 0.85):
+        problems.append(f"wide empty margins: the drawing spans {spans[0]:.0%} x {spans[1]:.0%}")
+    return problems
+
+
+def test_policy_figure_is_legible_at_tensorboard_card_size(task):
+    """As TensorBoard's add_figure renders it (the canvas at the figure's dpi), on the
+    default layout with an obstacle and on a layout whose box is tall and narrow (which
+    leaves the sides of a landscape figure empty, but must not overlap)."""
+    matplotlib = pytest.importorskip("matplotlib.pyplot")
+    thetas, _ = route_policies(task)
+    blocked = task.with_obstacles([{"centre": [0.6, 0.06, 0.0], "radius": 0.08}])
+    figure = blocked.plot_policies(torch.cat([thetas[[0, 3, 5, 6]], task.theta0[None]]))
+    assert figure_layout_problems(figure) == []
+    matplotlib.close(figure)
+    tall = ViapointTask(
+        start=[0.5, 0.0, -0.3],
+        target=[0.5, 0.0, 0.3],
+        pass_times=[0.8, 1.6],
+        viapoints=[[[0.5, -0.1, -0.1], [0.5, 0.1, -0.1]], [[0.5, 0.0, 0.15]]],
+        duration=2.4,
+        time_std=None,
+    )
+    figure = tall.plot_policies(tall.theta0[None])
+    assert figure_layout_problems(figure, margins=False) == []
+    matplotlib.close(figure)
 
 
 def test_dipole_finds_several_routes():
