@@ -41,7 +41,7 @@ from lockstep import on_grid, plot_best_and_average
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from dipole_torch.checkpoint import flatten
+from dipole_torch.training.resume import flatten
 
 # Config keys that do not change a run's numbers (train.py's RESUME_MAY_CHANGE, less the
 # budget and the device).

@@ -14,16 +14,23 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def compose_config(*overrides: str):
+    """``train.py``'s config with ``overrides`` (``task=viapoint``, ``algo=power``), composed
+    through Hydra's compose API from the package ``dipole_torch.configs``."""
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("dipole_torch.configs", version_base=None):
+        return compose("config", overrides=list(overrides))
 
 
 def load_task(name: str, **overrides):
     """The task of ``configs/task/<name>.yaml`` on CPU (constructor ``overrides`` applied),
     its trial budget and n0."""
-    config = OmegaConf.load(ROOT / "configs" / "task" / f"{name}.yaml")
-    config = OmegaConf.merge({"device": "cpu"}, {"task": config})
+    config = compose_config(f"task={name}", "device=cpu")
     task = instantiate(config.task.env, **overrides)
     return task, int(config.task.trials), int(config.task.n0)
 

@@ -48,8 +48,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from lockstep import load_task, on_grid, run_in_lockstep  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
+from lockstep import compose_config, load_task, on_grid, run_in_lockstep  # noqa: E402
 from reproduce_viapoint import make_optimizer  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -330,7 +329,7 @@ def main() -> None:
     parser.add_argument("--grid-step", type=int, default=1, help="trials between grid points")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    config = OmegaConf.load(ROOT / "configs" / "task" / "viapoint_blocked.yaml").block
+    config = compose_config("task=viapoint_blocked").task.block
     radius, threshold = float(config.radius), float(config.threshold)
     after = 300  # trials on the blocked layout
     chunks = [c.tolist() for c in np.array_split(np.arange(args.runs), max(1, args.workers))]

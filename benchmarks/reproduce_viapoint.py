@@ -57,8 +57,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
-from lockstep import load_task, on_grid, plot_best_and_average, run_in_lockstep  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
+from lockstep import (  # noqa: E402
+    compose_config,
+    load_task,
+    on_grid,
+    plot_best_and_average,
+    run_in_lockstep,
+)
 
 from dipole_torch import Dipole, Power  # noqa: E402
 
@@ -69,7 +74,7 @@ COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"
 
 def make_optimizer(algo: str, task, n0: int, seed: int):
     """The optimizer of ``configs/algo/<algo>.yaml`` (its defaults: α = 1, m = 10, M = 5)."""
-    config = OmegaConf.load(ROOT / "configs" / "algo" / f"{ALGORITHMS[algo]}.yaml")
+    config = compose_config(f"algo={ALGORITHMS[algo]}").algo
     optimizer = instantiate(
         config.optimizer,
         theta0=task.theta0.double(),

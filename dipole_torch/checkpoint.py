@@ -1,5 +1,5 @@
-"""Outputs that survive a crash, checkpoints that are verified and load without running
-code, and a lock that keeps a second process out of a run's directory.
+"""Outputs that survive a crash, and checkpoints that are verified and load without running
+code.
 
 * :func:`atomic_write_bytes`, :func:`atomic_write_text` and :func:`atomic_save` write a file
   under a temporary name in the same directory, flush it to disk (``fsync``) and move it into
@@ -17,12 +17,6 @@ code, and a lock that keeps a second process out of a run's directory.
   file is a :class:`CheckpointError` that names the file and says what is wrong with it:
   missing, a directory, unreadable, empty, not a torch file, truncated or corrupt, failing
   its integrity check, unsafe, or another kind of file (not a dict, or lacking keys).
-* :func:`lock_run_directory` holds an exclusive, non-blocking ``fcntl.flock`` on a lock file
-  in a run's directory while a process writes there; a second process (a resume started
-  while the run still goes on) gets :class:`RunDirectoryLocked` instead of writing the same
-  files. The operating system drops the lock when its holder exits or dies (``kill -9``
-  included), so a lock is never left stale.
-* :func:`config_differences` lists the dotted keys in which two nested dicts differ.
 
 The file format of :func:`atomic_save`: the zip archive that ``torch.save`` writes, with its
 archive comment set to a 56-byte integrity trailer::
@@ -46,47 +40,31 @@ never empty, so a truncated one ends before the 56 bytes its record promises, an
 writing a whole new end record over the trailer (on purpose, as a forger would) makes it look
 like one. A legacy file has no digest; the CRC-32 of each of its records is checked
 (``torch.load`` itself checks none), which catches a flipped bit in any of their contents.
-
-Nothing here imports Hydra: configs are plain dicts (``OmegaConf.to_container``).
 """
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import io
 import os
 import pickle
 import pickletools
 import re
-import socket
 import struct
 import tempfile
 import zipfile
-from collections.abc import Callable, Iterable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
 import torch
 
-try:  # POSIX
-    import fcntl
-except ImportError:  # Windows: msvcrt's byte-range locks, also dropped when a process dies
-    fcntl = None
-    import msvcrt
-
 __all__ = [
     "CheckpointError",
-    "RunDirectoryLocked",
     "atomic_save",
     "atomic_write_bytes",
     "atomic_write_text",
-    "config_differences",
-    "flatten",
     "load_checkpoint",
-    "lock_run_directory",
-    "remove_stale_temporaries",
 ]
 
 MARKER = b"\x89DIPOLE-SHA256\r\n"
@@ -105,10 +83,6 @@ _TORCH_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C  # the first pickle of torch < 1.6 
 class CheckpointError(ValueError):
     """A checkpoint file that cannot be used: missing, truncated, corrupt, unsafe or of
     another kind."""
-
-
-class RunDirectoryLocked(CheckpointError):
-    """Another process holds the lock of a run's directory (see :func:`lock_run_directory`)."""
 
 
 def _atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> None:
@@ -198,106 +172,6 @@ def _with_integrity_trailer(archive: bytes) -> tuple[bytes, bytes]:
         )
     archive = archive[:-2] + _COMMENT_LENGTH
     return archive, _TRAILER.pack(len(archive), hashlib.sha256(archive).digest(), MARKER)
-
-
-def remove_stale_temporaries(directory: str | os.PathLike, names: Iterable[str]) -> list[Path]:
-    """Delete the temporary files that a writer killed mid-write (``kill -9``, power cut)
-    left next to ``directory/name`` for each name; return them. Call it only while no other
-    process writes those files (e.g. when a run starts)."""
-    removed = []
-    for name in names:
-        for temporary in Path(directory).glob(f".{name}.*.tmp"):
-            temporary.unlink(missing_ok=True)
-            removed.append(temporary)
-    return removed
-
-
-@contextmanager
-def lock_run_directory(directory: str | os.PathLike, name: str = ".lock") -> Iterator[Path]:
-    """Hold the exclusive lock of a run's directory for the body of a ``with`` block.
-
-    The lock is a non-blocking ``fcntl.flock`` on ``directory/name`` (the directory and the
-    file are created if missing), which also records the holder's pid and host for the
-    message another process gets. The operating system releases it when the block ends or
-    the process exits or dies in any way (``kill -9`` included), so no stale lock can block
-    a later resume; the file itself stays and means nothing without the lock.
-
-    A lock belongs to an open file, not to a process: a second ``lock_run_directory`` of the
-    same directory fails in the same process too, and a child forked inside the block shares
-    the lock (it stays held until the parent and such children have all let go).
-
-    Yields:
-        The lock file's path.
-
-    Raises:
-        RunDirectoryLocked: another process (or another block of this one) holds the lock.
-            The message names the directory and the holder's pid and host.
-        CheckpointError: the lock file cannot be created or locked (e.g. a read-only
-            directory, or a file system without locks).
-    """
-    directory = Path(directory)
-    lock_path = directory / name
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
-    except OSError as error:
-        raise CheckpointError(
-            f"cannot lock run directory {str(directory)!r}: cannot create {str(lock_path)!r} "
-            f"({type(error).__name__}: {_first_line(error)})"
-        ) from None
-    try:
-        try:
-            _lock(fd)
-        except OSError as error:
-            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise CheckpointError(
-                    f"cannot lock run directory {str(directory)!r} with {str(lock_path)!r} "
-                    f"({type(error).__name__}: {_first_line(error)})"
-                ) from None
-            holder = _holder(lock_path)
-            if holder.startswith(f"pid {os.getpid()} on {socket.gethostname()}"):
-                raise RunDirectoryLocked(
-                    f"run directory {str(directory)!r} is locked: this process ({holder}) "
-                    "already holds its lock and is writing it"
-                ) from None
-            raise RunDirectoryLocked(
-                f"run directory {str(directory)!r} is locked: another process ({holder}) is "
-                "writing it. Wait for that run to end, or stop it, before resuming it; the "
-                f"lock ({str(lock_path)!r}) ends with its process."
-            ) from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
-        try:
-            yield lock_path
-        finally:
-            _unlock(fd)
-    finally:
-        os.close(fd)
-
-
-def _lock(fd: int) -> None:
-    if fcntl is not None:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    else:  # pragma: no cover - Windows
-        os.lseek(fd, 0, os.SEEK_SET)
-        msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
-
-
-def _unlock(fd: int) -> None:
-    if fcntl is not None:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-    else:  # pragma: no cover - Windows
-        os.lseek(fd, 0, os.SEEK_SET)
-        msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
-
-
-def _holder(lock_path: Path) -> str:
-    """What the lock file says of its holder (``pid N on HOST``), or that it is unknown."""
-    try:
-        text = lock_path.read_text(errors="replace").strip()
-    except OSError:
-        text = ""
-    return text[:200] if text else "holder unknown"
 
 
 def load_checkpoint(
@@ -572,33 +446,3 @@ def _described(error: BaseException) -> str:
 def _first_line(error: BaseException | str) -> str:
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
     return lines[0] if lines else type(error).__name__
-
-
-def flatten(tree: Mapping, prefix: str = "") -> dict[str, Any]:
-    """``{"a": {"b": 1}}`` → ``{"a.b": 1}``; lists are leaves."""
-    flat: dict[str, Any] = {}
-    for key, value in tree.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping) and value:
-            flat.update(flatten(value, f"{name}."))
-        else:
-            flat[name] = value
-    return flat
-
-
-def config_differences(
-    saved: Mapping, current: Mapping, ignore: Iterable[str] = ()
-) -> list[tuple[str, Any, Any]]:
-    """``[(key, saved value, current value)]`` for every dotted key whose values differ
-    (a key present in only one side has ``<missing>`` on the other), except keys in
-    ``ignore`` and keys under an ignored prefix (``"hydra"`` ignores ``"hydra.run.dir"``)."""
-    ignore = tuple(ignore)
-    a, b = flatten(saved), flatten(current)
-    differences = []
-    for key in sorted(set(a) | set(b)):
-        if any(key == skip or key.startswith(f"{skip}.") for skip in ignore):
-            continue
-        left, right = a.get(key, "<missing>"), b.get(key, "<missing>")
-        if left != right:
-            differences.append((key, left, right))
-    return differences

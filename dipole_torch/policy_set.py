@@ -22,8 +22,9 @@ class PolicyField:
 
 class PolicySet:
     """K policies in rows: ``means [K, D]``, ``covariances [K, D, D]`` (each policy's
-    exploration), ``active [K]`` (whether it is still sampled), and the fields mechanisms
-    register (:meth:`register`, e.g. ``success [K]`` and ``paths [K, D]``).
+    exploration), ``active [K]`` (whether it is still sampled), ``ids [K]`` (a number that
+    stays a policy's own while others come and go: 0, 1, 2, … in order of creation), and the
+    fields mechanisms register (:meth:`register`, e.g. ``success [K]`` and ``paths [K, D]``).
 
     Every tensor follows the same rows: :meth:`index` keeps a subset of the policies in all of
     them, :meth:`extend` appends new policies (fields at their defaults), :meth:`reset`
@@ -34,14 +35,21 @@ class PolicySet:
         covariances: ``[K, D, D]`` exploration covariances.
     """
 
-    CORE = ("means", "covariances", "active")
+    CORE = ("means", "covariances", "active", "ids")
 
     def __init__(self, means: Tensor, covariances: Tensor):
         object.__setattr__(self, "_fields", {})
         object.__setattr__(self, "_tensors", {})
+        object.__setattr__(self, "next_id", 0)
         self.means = means
         self.covariances = covariances
         self.active = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+        self.ids = self._new_ids(means.shape[0])
+
+    def _new_ids(self, n: int) -> Tensor:
+        ids = torch.arange(self.next_id, self.next_id + n, device=self.means.device)
+        object.__setattr__(self, "next_id", self.next_id + n)
+        return ids
 
     # ------------------------------------------------------------------ fields
     def register(self, name: str, field: PolicyField) -> None:
@@ -90,6 +98,7 @@ class PolicySet:
             "means": means,
             "covariances": covariances,
             "active": torch.ones(n, dtype=torch.bool, device=means.device),
+            "ids": self._new_ids(n),
         }
         for name, field in self._fields.items():
             new[name] = values.pop(name) if name in values else self._default(field, n)
@@ -99,10 +108,11 @@ class PolicySet:
             self._tensors[name] = torch.cat((self._tensors[name], value))
 
     def reset(self, means: Tensor, covariances: Tensor) -> None:
-        """Replace every policy by ``means [K, D]``, ``covariances [K, D, D]``, all active,
-        their fields at their defaults."""
+        """Replace every policy by ``means [K, D]``, ``covariances [K, D, D]``: new
+        policies, all active, their fields at their defaults."""
         self.means, self.covariances = means, covariances
         self.active = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+        self.ids = self._new_ids(means.shape[0])
         for name, field in self._fields.items():
             self._tensors[name] = self._default(field, means.shape[0])
 
@@ -114,10 +124,16 @@ class PolicySet:
             self._tensors[name] = torch.where(mask, field.default, value)
 
     # ------------------------------------------------------------------ checkpoints
-    KEYS = {"means": "policy_means", "covariances": "policy_covariances", "active": "active"}
+    KEYS = {
+        "means": "policy_means",
+        "covariances": "policy_covariances",
+        "active": "active",
+        "ids": "policy_ids",
+    }
 
-    def state_dict(self) -> dict[str, Tensor]:
-        return {self.KEYS.get(name, name): value.clone() for name, value in self._tensors.items()}
+    def state_dict(self) -> dict[str, Tensor | int]:
+        state = {self.KEYS.get(name, name): value.clone() for name, value in self._tensors.items()}
+        return state | {"next_policy_id": self.next_id}
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
         """Load every tensor (state keys ``policy_means``, ``policy_covariances``, ``active``
@@ -132,13 +148,16 @@ class PolicySet:
                 f"{list(getattr(means, 'shape', [type(means).__name__]))}"
             )
         k = means.shape[0]
-        shapes = {"means": (k, d), "covariances": (k, d, d), "active": (k,)}
+        shapes = {"means": (k, d), "covariances": (k, d, d), "active": (k,), "ids": (k,)}
         shapes |= {name: (k, *field.shape) for name, field in self._fields.items()}
         loaded = {}
         for name, shape in shapes.items():
             key = self.KEYS.get(name, name)
             if name in self._fields and key not in state:
                 loaded[name] = self._default(self._fields[name], k)
+                continue
+            if name == "ids" and key not in state:  # (from before policies had ids)
+                loaded[name] = torch.arange(k, device=device)
                 continue
             value = state[key]
             if not isinstance(value, Tensor) or tuple(value.shape) != shape:
@@ -149,3 +168,6 @@ class PolicySet:
             dtype = torch.bool if name == "active" else self._tensors[name].dtype
             loaded[name] = value.to(device=device, dtype=dtype)
         self._tensors.update(loaded)
+        ids = loaded["ids"]
+        next_id = int(state.get("next_policy_id", int(ids.max()) + 1 if ids.numel() else 0))
+        object.__setattr__(self, "next_id", next_id)

@@ -95,7 +95,8 @@ class CartPoleTask(ControlTask):
     * ``exploration_std``: standard deviations of the initial exploration, a number or ``[4]``;
       ``sigma_start = diag(exploration_std²)`` (default ``[1, 1, 20, 3]``).
     * ``default_seed``: seed of the start used when ``generator`` is ``None`` (0).
-    * ``engine``: how :meth:`evaluate` runs the episodes (``"auto"``):
+    * ``engine``: how :meth:`evaluate` runs the episodes, ``"python"``, ``"torch"`` or
+      ``"auto"`` (the default; see below). In detail:
 
       - ``"python"``: one episode at a time, a plain Python loop over the steps in double
         precision (Python floats, whatever ``dtype``), stopped at the failure (the remaining
@@ -162,7 +163,7 @@ class CartPoleTask(ControlTask):
         steps: int = 1000,
         force_limit: float = 10.0,
         initial_angle: float = 0.05,
-        theta0: Tensor | list[float] | None = None,
+        theta0: Tensor | list[float] | None = (0.0, 0.0, 0.0, 0.0),
         exploration_std: float | list[float] | Tensor = (1.0, 1.0, 20.0, 3.0),
         default_seed: int = 0,
         engine: str = "auto",

@@ -136,7 +136,7 @@ class MountainCarTask(ControlTask):
         goal_position: float = 0.5,
         alpha: float = 0.001,
         beta: float = 0.0055,
-        theta0: Tensor | list[float] | None = None,
+        theta0: Tensor | list[float] | None = (0.0, 0.0, 0.0, 0.0),
         exploration_std: float | list[float] | Tensor = (1.0, 1.0, 10.0, 100.0),
         default_seed: int = 0,
         engine: str = "auto",

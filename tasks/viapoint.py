@@ -8,6 +8,7 @@ import math
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 import torch
@@ -19,7 +20,7 @@ from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
 from dipole_torch.tasks.base import EpisodicTask
 from torch import Tensor
 
-__all__ = ["ENGINES", "KINEMATICS", "ViapointTask"]
+__all__ = ["ENGINES", "KINEMATICS", "Obstacle", "ViapointTask"]
 
 KINEMATICS = ("pytorch_kinematics", "wam_dh")  # the choices of ViapointTask(kinematics=...)
 ENGINES = ("auto", "numpy", "torch")  # the choices of ViapointTask(engine=...)
@@ -27,6 +28,18 @@ WAM_START_POSTURE = (0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0)  # rad, elbow bent, tool
 # m: a target or viapoint that inverse kinematics from the start posture ends farther from
 # than this gets a warning at construction.
 UNREACHED_DISTANCE = 1e-3
+
+
+class Obstacle(TypedDict):
+    """A sphere the end effector's path must not enter.
+
+    Attributes:
+        centre: ``[x, y, z]`` in m, in the arm's base frame.
+        radius: in m.
+    """
+
+    centre: Sequence[float]
+    radius: float
 
 
 class ViapointTask(EpisodicTask):
@@ -257,9 +270,9 @@ class ViapointTask(EpisodicTask):
         goal_time: float | None = None,
         exploration_std: float = 0.05,
         ik_damping: float = 0.05,
-        obstacles: Sequence[Mapping] = (),
+        obstacles: Sequence[Obstacle] = (),
         penetration_scale: float = 0.02,
-        urdf: str | Path = URDF_PATH,
+        urdf: str | Path = "models/wam/wam7.urdf",
         end_effector: str = END_EFFECTOR_LINK,
         base_link: str | None = None,
         joint_lower: Sequence[float] | None = None,

@@ -30,7 +30,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import dipole_torch.checkpoint as ckpt  # noqa: E402
+import dipole_torch.training.run_directory as run_directory  # noqa: E402
 from dipole_torch.checkpoint import CheckpointError, atomic_save, load_checkpoint  # noqa: E402
 
 TRAILER_SIZE = 56  # the documented format: length (8), SHA-256 (32), marker (16)
@@ -425,19 +425,19 @@ def test_no_damaged_checkpoint_loads_other_contents_or_raises_anything_else(tmp_
 # ------------------------------------------------------------------ the run-directory lock
 def test_a_locked_run_directory_refuses_a_second_writer_until_released(tmp_path):
     run = tmp_path / "run"
-    with ckpt.lock_run_directory(run) as lock_file:
+    with run_directory.lock_run_directory(run) as lock_file:
         assert lock_file.parent == run and lock_file.exists()
-        with pytest.raises(ckpt.RunDirectoryLocked) as error:
-            with ckpt.lock_run_directory(run):
+        with pytest.raises(run_directory.RunDirectoryLocked) as error:
+            with run_directory.lock_run_directory(run):
                 pass
         message = str(error.value)
         assert str(run) in message and f"this process (pid {os.getpid()} on" in message
         assert isinstance(error.value, CheckpointError)
-    with ckpt.lock_run_directory(run):  # released at the end of the block
+    with run_directory.lock_run_directory(run):  # released at the end of the block
         pass
-    with pytest.raises(RuntimeError), ckpt.lock_run_directory(run):
+    with pytest.raises(RuntimeError), run_directory.lock_run_directory(run):
         raise RuntimeError("the run failed")
-    with ckpt.lock_run_directory(run):  # released by an exception too
+    with run_directory.lock_run_directory(run):  # released by an exception too
         pass
 
 
@@ -448,7 +448,7 @@ def test_a_run_directory_lock_dies_with_its_process(tmp_path):
     child = os.fork()
     if child == 0:  # pragma: no cover - the child process
         try:
-            with ckpt.lock_run_directory(run):
+            with run_directory.lock_run_directory(run):
                 os.write(ready_write, b"locked")
                 signal.pause()
         finally:
@@ -456,15 +456,16 @@ def test_a_run_directory_lock_dies_with_its_process(tmp_path):
     os.close(ready_write)
     try:
         assert os.read(ready_read, 6) == b"locked"
-        with pytest.raises(ckpt.RunDirectoryLocked, match=rf"another process \(pid {child} on"):
-            with ckpt.lock_run_directory(run):
+        held = rf"another process \(pid {child} on"
+        with pytest.raises(run_directory.RunDirectoryLocked, match=held):
+            with run_directory.lock_run_directory(run):
                 pass
     finally:
         os.kill(child, signal.SIGKILL)
         os.waitpid(child, 0)
         os.close(ready_read)
     assert (run / ".lock").exists()  # the file stays; without its holder it locks nothing
-    with ckpt.lock_run_directory(run):
+    with run_directory.lock_run_directory(run):
         pass
 
 
@@ -472,5 +473,5 @@ def test_a_run_directory_that_cannot_hold_a_lock_file_gives_a_clear_error(tmp_pa
     not_a_directory = tmp_path / "file"
     not_a_directory.write_text("x")
     with pytest.raises(CheckpointError, match=r"cannot lock run directory '.*file'"):
-        with ckpt.lock_run_directory(not_a_directory):
+        with run_directory.lock_run_directory(not_a_directory):
             pass

@@ -1,6 +1,6 @@
-"""The wheel: one top-level package (dipole_torch, plus a module in Hydra's hydra_plugins
-namespace), the configs and train.py inside it, a ``dipole-train`` command that trains from
-a project holding its own ``models/`` and ``tasks/`` packages.
+"""The wheel: one top-level package (dipole_torch: nothing in Hydra's plugin namespace), the
+configs and train.py inside it, a ``dipole-train`` command that trains from a project holding
+its own ``models/`` and ``tasks/`` packages, and no side effect on another Hydra app.
 
 The wheel is built offline from a copy of the sources (a stale ``build/`` or egg-info of the
 checkout cannot leak into it) and installed with ``pip install --target``; the check runs in
@@ -93,9 +93,10 @@ def test_wheel_installs_one_package_and_its_command_trains(tmp_path):
     top_level = {
         name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")
     }
-    assert top_level == {"dipole_torch", "hydra_plugins"}, sorted(top_level)
-    assert "hydra_plugins/dipole_torch_configs/__init__.py" in names
+    assert top_level == {"dipole_torch"}, sorted(top_level)
     assert "dipole_torch/train.py" in names
+    for package in ("dp", "mechanisms", "training", "configs"):
+        assert f"dipole_torch/{package}/__init__.py" in names, package
     assert "dipole_torch/models/wam/wam7.urdf" in names
     configs = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "configs").rglob("*.yaml"))
     assert configs and all(f"dipole_torch/{c}" in names for c in configs), configs
@@ -132,6 +133,44 @@ def test_wheel_installs_one_package_and_its_command_trains(tmp_path):
     results = json.loads((run_dir / "results.json").read_text())
     assert results["task"] == "viapoint" and results["trials"] == 30 and results["policies"]
     assert (run_dir / "train.log").read_text()  # Hydra's job logging, named after train.py
+
+    # Installing it changes no other Hydra app: nothing of ours is imported when one starts,
+    # and its config groups are its own.
+    app = tmp_path / "other_app"
+    (app / "conf" / "db").mkdir(parents=True)
+    (app / "conf" / "config.yaml").write_text("defaults:\n  - db: mysql\n  - _self_\nx: 1\n")
+    (app / "conf" / "db" / "mysql.yaml").write_text("host: localhost\n")
+    (app / "app.py").write_text(OTHER_APP)
+    for args in ([], ["--help"]):
+        result = subprocess.run(
+            [sys.executable, "-S", str(app / "app.py"), str(target), site_packages, *args],
+            cwd=app,
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "imported: []" in result.stdout or args, result.stdout
+        assert "task" not in result.stdout.split("== Config ==")[0], result.stdout
+        assert "dipole" not in result.stdout, result.stdout
+
+
+# A Hydra app of someone else's, run with the wheel on sys.path.
+OTHER_APP = """
+import sys
+target, site_packages = sys.argv[1:3]
+del sys.argv[1:3]
+sys.path[1:1] = [target, site_packages]
+import hydra
+
+@hydra.main(version_base=None, config_path="conf", config_name="config")
+def main(cfg):
+    ours = sorted(m for m in sys.modules if m.split(".")[0] in ("dipole_torch", "torch", "pyro"))
+    print("imported:", ours)
+
+main()
+"""
 
 
 def test_a_checkpoint_naming_the_old_task_module_resumes(tmp_path):
@@ -191,7 +230,7 @@ def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
 
 
 def test_the_resume_command_names_the_command_that_ran(monkeypatch):
-    from train import resume_command
+    from dipole_torch.training.resume import resume_command
 
     monkeypatch.setattr(sys, "argv", ["/env/bin/dipole-train", "task=viapoint"])
     assert resume_command(["task=viapoint"], "/r/checkpoint.pt") == (

@@ -33,9 +33,9 @@ from dipole_torch.checkpoint import (  # noqa: E402
     CheckpointError,
     atomic_save,
     atomic_write_text,
-    config_differences,
     load_checkpoint,
 )
+from dipole_torch.training.resume import config_differences  # noqa: E402
 
 F64 = torch.float64
 
@@ -453,8 +453,8 @@ def test_config_differences_lists_dotted_keys():
 @pytest.mark.parametrize(
     "override, message",
     [
-        ("device=cudafoo", "device must be 'cpu', 'cuda' or 'cuda:N', got 'cudafoo'"),
-        ("device=cuda:x", "device must be 'cpu', 'cuda' or 'cuda:N'"),
+        ("device=cudafoo", "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'cudafoo'"),
+        ("device=cuda:x", "device must be 'cpu', 'cuda', 'cuda:N' or 'mps'"),
         ("checkpoint_every=0", "checkpoint_every must be a positive integer, got 0"),
         ("seed=-1", "seed must be a non-negative integer"),
         ("resume=''", "resume must be the path of a checkpoint.pt"),
@@ -463,7 +463,7 @@ def test_config_differences_lists_dotted_keys():
 def test_more_bad_config_values(override, message):
     from hydra import compose, initialize_config_dir
 
-    from train import check_config
+    from dipole_torch.training.checks import check_config
 
     with initialize_config_dir(str(ROOT / "configs"), version_base=None):
         cfg = compose("config", overrides=[override])

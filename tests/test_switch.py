@@ -175,8 +175,8 @@ def test_train_blocks_reevaluates_and_goes_on(blocked_run):
     assert history["trials"][-1] > history["trials"][after]  # it went on learning
     events = EventAccumulator(str(blocked_run / "tensorboard"), size_guidance={"images": 0})
     events.Reload()
-    assert {"block/before", "block/after", "policies/figure"} <= set(events.Tags()["images"])
-    assert events.Images("block/before")[0].step == block["trial"]
+    assert {"world/before", "world/after", "search/figure"} <= set(events.Tags()["images"])
+    assert events.Images("world/before")[0].step == block["trial"]
     assert [e.step for e in events.Scalars("reward/best_so_far")] == history["trials"]
     assert "block at" in (blocked_run / "train.log").read_text()
 
@@ -208,7 +208,7 @@ def test_power_on_the_blocked_task(tmp_path):
 
 
 def test_a_block_before_the_first_batch_is_refused():
-    from train import check_config
+    from dipole_torch.training.checks import check_config
 
     with pytest.raises(ValueError, match="task.block.trial=10 is below task.n0=30"):
         check_config(compose_config("task=viapoint_blocked", "task.block.trial=10"))

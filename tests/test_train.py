@@ -20,8 +20,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from tensorboard.plugins.hparams import plugin_data_pb2
 
 from dipole_torch import Dipole
-from dipole_torch import config as schemas
-from dipole_torch.checkpoint import flatten
+from dipole_torch.training import config as schemas
+
+schemas.register()  # (train.py does it; the tests below read the tables)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -61,15 +62,16 @@ def test_outputs_and_tensorboard_scalars(finished_run):
         "reward/best",
         "reward/mean",
         "reward/best_so_far",
-        "policies/count",
-        "policies/exploration_std",
+        "search/policies",
+        "search/exploration_std",
     } <= tags
+    assert not [tag for tag in tags if tag.startswith("hparam")]  # those are in HPARAMS only
     best = events.Scalars("reward/best")
     assert [e.step for e in best] == history["trials"]  # the x-axis is trials
     assert [e.value for e in best] == pytest.approx(history["best"], rel=1e-6)
     mean = events.Scalars("reward/mean")
     assert all(m.value <= b.value + 1e-6 for m, b in zip(mean, best, strict=True))
-    counts = [e.value for e in events.Scalars("policies/count")]
+    counts = [e.value for e in events.Scalars("search/policies")]
     assert counts == history["num_policies"] and min(counts) >= 1
     assert 0.0 <= results["best_reward"] <= 1.0
     assert max(history["best_so_far"]) == pytest.approx(results["best_reward"])
@@ -91,10 +93,10 @@ def test_hparams_hold_the_config_and_the_final_metrics(finished_run):
     assert hparams["resume"].string_value == "null"
     experiment = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/experiment"])
     metrics = {m.name.tag for m in experiment.experiment.metric_infos}
-    assert metrics == {"hparam/best_reward", "hparam/num_policies", "hparam/trials"}
-    assert events.Scalars("hparam/best_reward")[-1].value == pytest.approx(results["best_reward"])
-    assert events.Scalars("hparam/num_policies")[-1].value == len(results["policies"])
-    assert events.Scalars("hparam/trials")[-1].value == results["trials"]
+    assert metrics == {"reward/best_so_far", "search/policies"}  # the run's own scalars
+    best = events.Scalars("reward/best_so_far")[-1]
+    assert best.value == pytest.approx(results["best_reward"]) and best.step == results["trials"]
+    assert events.Scalars("search/policies")[-1].value == len(results["policies"])
 
 
 def test_train_log_holds_the_log_lines_and_the_summary(finished_run):
@@ -112,7 +114,7 @@ def test_each_policy_figure_is_logged_once(tmp_path):
     results = json.loads((tmp_path / "results.json").read_text())
     events = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"images": 0})
     events.Reload()
-    steps = [event.step for event in events.Images("policies/figure")]
+    steps = [event.step for event in events.Images("search/figure")]
     assert steps == results["history"]["trials"] and steps[-1] == results["trials"] == 40
 
 
@@ -243,33 +245,34 @@ def test_a_wrong_type_on_the_command_line_names_the_key(tmp_path):
     assert "full_key: algo.optimizer.alpha" in result.stderr
 
 
-def test_the_configs_extend_the_schemas_and_build_their_targets():
-    """Every YAML option is typed by its schema, in a fresh process that imports nothing of
-    this project (the hydra_plugins hook registers the schemas), and instantiates."""
-    options = [(f"task={name}", "algo=dipole") for name in schemas.TASKS if name != "task"]
-    options += [("task=multimodal", f"algo={name}") for name in schemas.ALGOS if name != "algo"]
+def test_the_configs_extend_the_schemas_and_build_their_targets(tmp_path):
+    """Every YAML option is typed by its schema, composed through Hydra's compose API in a
+    fresh process started in another directory (importing dipole_torch.configs registers the
+    schemas), and instantiates."""
+    options = [(f"task={name}", "algo=dipole") for name in schemas.TASKS]
+    options += [("task=multimodal", f"algo={name}") for name in schemas.ALGOS]
     code = (
         "import sys\n"
-        "from hydra import compose, initialize_config_dir\n"
+        "from hydra import compose, initialize_config_module\n"
         "from omegaconf import OmegaConf\n"
-        f"with initialize_config_dir({str(ROOT / 'configs')!r}, version_base=None):\n"
+        "with initialize_config_module('dipole_torch.configs', version_base=None):\n"
         f"    for overrides in {options!r}:\n"
         "        cfg = compose('config', overrides=list(overrides))\n"
         "        print(OmegaConf.get_type(cfg).__name__, OmegaConf.get_type(cfg.task).__name__,\n"
         "              OmegaConf.get_type(cfg.algo).__name__)\n"
-        "assert 'dipole_torch.config' in sys.modules and 'train' not in sys.modules\n"
+        "assert 'train' not in sys.modules\n"
     )
     result = subprocess.run(
-        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stderr
     types = [line.split() for line in result.stdout.splitlines()]
-    expected = [["Config", schemas.TASKS[name].__name__, "DipoleAlgo"] for name in schemas.TASKS]
-    expected = [row for row in expected if row[1] != "TaskConfig"]
+    dipole = schemas.ALGOS["dipole"].__name__
+    expected = [["Config", schemas.TASKS[name].__name__, dipole] for name in schemas.TASKS]
     expected += [
-        ["Config", "MultimodalTask", schemas.ALGOS[name].__name__] for name in schemas.ALGOS
+        ["Config", schemas.TASKS["multimodal"].__name__, schemas.ALGOS[name].__name__]
+        for name in schemas.ALGOS
     ]
-    expected = [row for row in expected if row[2] != "AlgoConfig"]
     assert types == expected
     # The optimizers build from their configs, keyword arguments and _target_ included.
     theta0, sigma = torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64)
@@ -279,7 +282,7 @@ def test_the_configs_extend_the_schemas_and_build_their_targets():
         sigma_start=sigma,
         reward_range=(0.0, 1.0),
     )
-    assert paper.is_paper_variant and paper.alpha == 2.0
+    assert paper.options.matching == "replace" and paper.options.alpha == 2.0
     default = instantiate(
         compose_config(
             "algo.optimizer.max_policies=null", "algo.optimizer.explore=0"
@@ -287,16 +290,39 @@ def test_the_configs_extend_the_schemas_and_build_their_targets():
         theta0=theta0,
         sigma_start=sigma,
     )
-    assert default.max_policies is None and default.explore == 0.0
-    # The YAML files hold every key of their schema (the documented values), and no other.
+    assert default.options.max_policies is None and default.options.explore == 0.0
+
+
+def test_each_default_is_stated_once_in_the_code():
+    """The YAML files hold the experiments' own settings only; every task's and optimizer's
+    argument and default comes from its signature (DIPOLE's: DipoleOptions)."""
+    import inspect
+
+    from dipole_torch import DipoleOptions, Power
+
     for group, table in (("task", schemas.TASKS), ("algo", schemas.ALGOS)):
-        for name, schema in table.items():
-            if name in ("task", "algo"):
-                continue
+        for name in table:
             yaml = OmegaConf.to_container(OmegaConf.load(ROOT / "configs" / group / f"{name}.yaml"))
-            assert yaml.pop("defaults") == [f"base_{name}", "_self_"]
-            keys = set(flatten(OmegaConf.to_container(OmegaConf.structured(schema))))
-            assert set(flatten(yaml)) == keys, name
+            assert yaml.pop("defaults") == [f"/dipole_torch_{group}_{name}@_here_", "_self_"]
+            own = {"name", "trials", "n0"} if group == "task" else {"name", "use_task_reward_range"}
+            assert set(yaml) == own, name
+    env = OmegaConf.structured(schemas.TASKS["viapoint"]).env
+    env.device = "cpu"
+    signature = inspect.signature(type(instantiate(env)).__init__).parameters
+    for key, value in env.items():
+        if key not in ("_target_", "device"):
+            default = signature[key].default
+            default = list(default) if isinstance(default, tuple) else default
+            assert OmegaConf.to_container(OmegaConf.create({"v": value}))["v"] == (
+                json.loads(json.dumps(default))
+            ), key
+    dipole = OmegaConf.structured(schemas.ALGOS["dipole"]).optimizer
+    for key, value in dipole.items():
+        if key not in ("_target_", "bounds"):
+            assert value == getattr(DipoleOptions(), key), key
+    power = OmegaConf.structured(schemas.ALGOS["power"]).optimizer
+    parameters = inspect.signature(Power.__init__).parameters
+    assert all(power[k] == parameters[k].default for k in power if k != "_target_")
 
 
 def test_help_lists_every_field_with_its_help():
@@ -309,30 +335,29 @@ def test_help_lists_every_field_with_its_help():
     )
     assert result.returncode == 0, result.stderr
     text = " ".join(result.stdout.split())  # help lines are wrapped
-    assert "algo.optimizer.alpha: float = 1.0 DP concentration (> 0)" in text
+    assert "algo.optimizer.alpha: float = 1.0 DP concentration α > 0 (paper: 1)" in text
     assert "task.env.reward_alpha: float = 2.5" in text
     assert "trials: int = the value of task.trials" in text
     assert "python train.py [task=<task>]" in text
-    assert "task.block.trial: int = 300" in text  # a section that may be null (viapoint_blocked)
+    assert "task.block.trial: int trials before the block" in text  # a section that may be null
+    assert "base_viapoint" not in text and "dipole_torch_task" not in text  # no schema offered
     sections = [(schemas.Config, ""), (schemas.TaskConfig, "task."), (schemas.AlgoConfig, "algo.")]
     for table, key, prefix in (
         (schemas.TASKS, "env", "task.env."),
         (schemas.ALGOS, "optimizer", "algo.optimizer."),
     ):
         for schema in table.values():
-            leaf = typing.get_type_hints(schema)[key]
-            if dataclasses.is_dataclass(leaf):  # not the untyped base_task / base_algo
-                sections.append((leaf, prefix))
+            sections.append((typing.get_type_hints(schema)[key], prefix))
     assert len(sections) == 3 + 4 + 3
     for schema, prefix in sections:
         for f in dataclasses.fields(schema):
-            if f.name in ("task", "algo", "env", "optimizer"):
+            if f.name in ("task", "algo", "env", "optimizer", "_target_"):
                 continue
             assert f"{prefix}{f.name}: " in text, f"{prefix}{f.name}"
+            assert f.metadata["help"], f"{prefix}{f.name} has no help in its docstring"
             assert " ".join(f.metadata["help"].split()) in text, f"{prefix}{f.name}"
     for name in [*schemas.TASKS, *schemas.ALGOS]:
-        if name not in ("task", "algo"):
-            assert f"{'algo' if name in schemas.ALGOS else 'task'}={name}: " in text
+        assert f"{'algo' if name in schemas.ALGOS else 'task'}={name}: " in text
 
 
 @pytest.mark.parametrize(
@@ -340,7 +365,7 @@ def test_help_lists_every_field_with_its_help():
     [
         ("trials=-5", "trials (the trial budget) must be a positive integer"),
         ("trials=0", "trials (the trial budget) must be a positive integer"),
-        ("device=tpu", "device must be 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
+        ("device=tpu", "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'tpu'"),
         ("threads=0", "threads must be a positive integer"),
         ("task.n0=0", "task.n0 (initial samples) must be a positive integer"),
         ("trials=5", "trials=5 is below task.n0=10: the first batch (n0 trials) would exceed"),
@@ -348,7 +373,7 @@ def test_help_lists_every_field_with_its_help():
     ],
 )
 def test_bad_config_values_give_a_clear_error(override, message):
-    from train import check_config
+    from dipole_torch.training.checks import check_config
 
     with pytest.raises(ValueError) as error:
         check_config(compose_config(override))

@@ -236,19 +236,21 @@ def test_dipole_learns_a_route_on_the_second_arm(urdf_path):
 
 
 def test_readme_example_config_composes(urdf_path, tmp_path):
-    """The README's "Use your own arm" config file, with this test's URDF and end-effector
-    link, composes with Hydra as ``task=viapoint_myarm`` and builds the task on that arm."""
+    """The docs' "Your own arm" config file, with this test's URDF and end-effector link,
+    composes with Hydra as ``task=viapoint_myarm`` and builds the task on that arm."""
     import shutil
     from pathlib import Path
 
     hydra = pytest.importorskip("hydra")
     hydra_utils = pytest.importorskip("hydra.utils")
+    import dipole_torch.configs  # noqa: F401 (registers the schemas the configs extend)
+
     root = Path(__file__).resolve().parents[1]
-    readme = (root / "README.md").read_text()
-    marker = "# configs/task/viapoint_myarm.yaml"
+    readme = (root / "docs" / "guide" / "urdf.md").read_text()
+    marker = "# file: my_configs/task/viapoint_myarm.yaml"
     assert marker in readme
     example = readme.split(marker, 1)[1].split("\n", 1)[1].split("```", 1)[0]
-    example = example.replace("/path/to/my_arm.urdf", str(urdf_path))
+    example = example.replace("my_arm.urdf", str(urdf_path))
     example = example.replace("tool_link", "tool")
     configs = tmp_path / "configs"
     shutil.copytree(root / "configs", configs)

@@ -172,10 +172,10 @@ def test_another_layout_without_code_changes():
 
 
 def test_config_instantiates():
-    omegaconf = pytest.importorskip("omegaconf")
+    hydra = pytest.importorskip("hydra")
     hydra_utils = pytest.importorskip("hydra.utils")
-    config = omegaconf.OmegaConf.load(CONFIG)
-    config = omegaconf.OmegaConf.merge({"device": "cpu"}, {"task": config})
+    with hydra.initialize_config_module("dipole_torch.configs", version_base=None):
+        config = hydra.compose("config", overrides=[f"task={CONFIG.stem}"])
     assert config.task.trials == 300 and config.task.n0 == 30
     task = hydra_utils.instantiate(config.task.env)
     assert isinstance(task, ViapointTask)

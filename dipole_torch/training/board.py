@@ -1,0 +1,116 @@
+"""A training run's TensorBoard: scalars against trials, the policy figure, the config and
+the hyperparameters.
+
+Tags (the step is always the trial count, the x-axis of the paper's plots), grouped so that
+TensorBoard's Time Series tab opens on the returns:
+
+* ``reward/best``, ``reward/mean``: the best and mean of each policy's latest return
+  (``last_rewards``); ``reward/best_so_far``: the best return evaluated so far;
+* ``search/policies``: the number of policies; ``search/exploration_std``: the mean
+  exploration std of the sampled policies relative to Σ_start's (log scale: it shrinks
+  geometrically as they converge); ``search/rewards``: histogram of the policies' returns;
+  ``search/figure``: the task's policy figure, where it has one;
+* ``world/before``, ``world/after``, ``world/block``: the block experiment (viapoint_blocked).
+
+The Custom Scalars tab shows the returns in one chart. The HPARAMS tab gets the flattened
+config with the final ``reward/best_so_far`` and ``search/policies`` (no scalars of its own).
+The resolved config is the ``config`` text.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.tensorboard import SummaryWriter
+from torch.utils.tensorboard.summary import hparams
+
+from dipole_torch.training.resume import flatten
+
+__all__ = ["Board"]
+
+LAYOUT = {
+    "returns": {
+        "reward": ["Multiline", ["reward/best", "reward/mean", "reward/best_so_far"]],
+    },
+    "search": {
+        "policies": ["Multiline", ["search/policies"]],
+        "relative exploration std (log10)": ["Multiline", ["search/exploration_std"]],
+    },
+}
+
+
+class Board:
+    """The run's ``SummaryWriter`` with its tags and layout.
+
+    Args:
+        directory: the run's ``tensorboard/`` directory.
+        cfg: the run's config (logged resolved, as text).
+        purge_step: the first step to keep of an earlier session's events (a resumed run:
+            events a killed session logged after its last checkpoint are hidden).
+    """
+
+    def __init__(self, directory: Path, cfg: DictConfig, purge_step: int | None = None):
+        self.writer = SummaryWriter(str(directory), purge_step=purge_step)
+        if purge_step is None:
+            self.writer.add_custom_scalars(LAYOUT)
+            config = OmegaConf.to_yaml(cfg, resolve=True)
+            self.writer.add_text("config", f"```yaml\n{config}\n```")
+
+    def log_iteration(self, optimizer) -> dict[str, float]:
+        """Write this iteration's scalars; return them for the history."""
+        rewards = optimizer.last_rewards
+        relative = optimizer.relative_std()
+        sampled = relative[optimizer.active] if bool(optimizer.active.any()) else relative
+        row = {
+            "trials": optimizer.trials,
+            "best": float(rewards.max()),
+            "mean": float(rewards.mean()),
+            "best_so_far": optimizer.best()[1],
+            "num_policies": optimizer.num_policies,
+            "exploration_std": float(sampled.mean()),
+        }
+        step = optimizer.trials
+        self.writer.add_scalar("reward/best", row["best"], step)
+        self.writer.add_scalar("reward/mean", row["mean"], step)
+        self.writer.add_scalar("reward/best_so_far", row["best_so_far"], step)
+        self.writer.add_scalar("search/policies", row["num_policies"], step)
+        exploration = row["exploration_std"]
+        log_std = math.log10(exploration) if exploration > 0 else -math.inf
+        self.writer.add_scalar("search/exploration_std", log_std, step)
+        self.writer.add_histogram("search/rewards", rewards.float(), step)
+        return row
+
+    def figure(self, tag: str, figure, step: int) -> None:
+        """A matplotlib figure (closed once written); ``None`` writes nothing."""
+        if figure is not None:
+            self.writer.add_figure(tag, figure, step)
+
+    def text(self, tag: str, text: str, step: int) -> None:
+        self.writer.add_text(tag, text.replace("\n", "  \n"), step)
+
+    def hparams(self, cfg: DictConfig, best_reward: float, num_policies: int) -> None:
+        """The HPARAMS tab: the flattened config (``algo.optimizer.alpha``, …), with the run's
+        final ``reward/best_so_far`` and ``search/policies`` as its metrics."""
+        config = flatten(OmegaConf.to_container(cfg, resolve=True))
+        # TensorBoard takes numbers, strings and booleans: lists and null as text.
+        values = {
+            key: value if isinstance(value, bool | int | float | str) else json.dumps(value)
+            for key, value in config.items()
+        }
+        metrics = {"reward/best_so_far": best_reward, "search/policies": num_policies}
+        for summary in hparams(values, metrics):
+            self.writer.file_writer.add_summary(summary)
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+def policy_figure(task, optimizer, title: str | None = None):
+    """The task's figure of the optimizer's policy means (``None`` where it has none)."""
+    means = optimizer.policy_means.to(task.device, task.dtype)
+    with torch.no_grad():
+        return task.plot_policies(means, **({} if title is None else {"title": title}))

@@ -1,0 +1,132 @@
+"""Values a config's types cannot refuse, and how a run reports a bad one.
+
+Types are checked when Hydra composes the config against the schemas (OmegaConf names the
+key); Hydra refuses an unknown task or algorithm, listing the available ones. What remains
+(ranges, whether a device exists, a checkpoint that does not fit) is checked here, by the
+optimizers' and tasks' constructors, and on resume: :func:`reported` turns each into one
+line on stderr naming the key and the value, and exit status 2, with no traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sys
+
+import torch
+from hydra.errors import InstantiationException
+from omegaconf import DictConfig, OmegaConf
+
+from dipole_torch.checkpoint import CheckpointError
+
+__all__ = ["ConfigValueError", "check_config", "reported"]
+
+EXIT_BAD_CONFIG = 2
+
+
+class ConfigValueError(ValueError):
+    """A config value of the right type but not a valid value; the message names the key and
+    the value."""
+
+    def __init__(self, key: str, value, message: str):
+        super().__init__(message)
+        self.key, self.value = key, value
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Refuse values that have the right type but not a valid value, naming the key."""
+    counts = (
+        ("trials", "trials (the trial budget)", 1),
+        ("task.n0", "task.n0 (initial samples)", 1),
+        ("threads", "threads", 1),
+        ("checkpoint_every", "checkpoint_every", 1),
+        ("seed", "seed", 0),
+        ("figure_every", "figure_every", 0),
+    )
+    for key, name, least in counts:
+        value = OmegaConf.select(cfg, key)
+        if value < least:
+            kind = "a positive integer" if least else "a non-negative integer"
+            raise ConfigValueError(key, value, f"{name} must be {kind}, got {value!r}")
+    if cfg.resume is None and cfg.trials < cfg.task.n0:
+        raise ConfigValueError(
+            "trials",
+            cfg.trials,
+            f"trials={cfg.trials} is below task.n0={cfg.task.n0}: the first batch (n0 trials) "
+            "would exceed the trial budget",
+        )
+    check_device(str(cfg.device))
+    block = cfg.task.get("block")
+    if block is not None and block.trial < cfg.task.n0:
+        raise ConfigValueError(
+            "task.block.trial",
+            block.trial,
+            f"task.block.trial={block.trial} is below task.n0={cfg.task.n0}: the block "
+            "re-evaluates learned policies, after the first batch at least",
+        )
+    if cfg.resume is not None and not cfg.resume:
+        raise ConfigValueError(
+            "resume", cfg.resume, f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}"
+        )
+
+
+def check_device(device: str) -> None:
+    """``cpu``, ``cuda``, ``cuda:N`` (a device this machine has) or ``mps`` (where torch has
+    it)."""
+    if not re.fullmatch(r"cpu|cuda(:\d+)?|mps", device):
+        raise ConfigValueError(
+            "device", device, f"device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {device!r}"
+        )
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ConfigValueError(
+                "device", device, f"device={device!r} but CUDA is not available on this machine"
+            )
+        index = int(device.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            count = torch.cuda.device_count()
+            raise ConfigValueError(
+                "device", device, f"device={device!r} but this machine has {count} CUDA device(s)"
+            )
+    if device == "mps" and not torch.backends.mps.is_available():
+        raise ConfigValueError(
+            "device", device, f"device={device!r} but MPS is not available on this machine"
+        )
+
+
+@contextlib.contextmanager
+def reported(where: str | None = None):
+    """Report a bad value inside the block as one line on stderr and exit with status 2.
+
+    ``where`` names the config node whose constructor runs in the block (``task.env``,
+    ``algo.optimizer``): its own errors name the argument, and the line adds the node. With
+    ``HYDRA_FULL_ERROR=1`` (Hydra's switch for full tracebacks) the error is raised as it is.
+    """
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        yield
+        return
+    try:
+        yield
+    except (ConfigValueError, CheckpointError) as error:
+        _exit(str(error))
+    except InstantiationException as error:
+        cause = error.__cause__ or error
+        if not isinstance(cause, ValueError | TypeError | FileNotFoundError):
+            raise
+        _exit(f"{where}: {_first_line(cause)}" if where else _first_line(cause))
+    except (ValueError, TypeError, FileNotFoundError) as error:
+        if where is None:
+            raise
+        _exit(f"{where}: {_first_line(error)}")
+
+
+def _first_line(error: BaseException) -> str:
+    lines = [line for line in str(error).splitlines() if line.strip()]
+    return lines[0] if lines else type(error).__name__
+
+
+def _exit(message: str) -> None:
+    sys.stdout.flush()
+    print(f"error: {message} (HYDRA_FULL_ERROR=1 for the traceback)", file=sys.stderr)
+    raise SystemExit(EXIT_BAD_CONFIG)

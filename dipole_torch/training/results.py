@@ -1,0 +1,46 @@
+"""A training run's results: ``results.json`` and ``policies.pt``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from dipole_torch import Dipole
+from dipole_torch.checkpoint import atomic_save, atomic_write_text
+
+__all__ = ["policy_summary", "write_results"]
+
+
+def policy_summary(task, optimizer) -> list[dict]:
+    """One entry per policy: its id, mean, covariance, weight, the return of its mean
+    (evaluated without exploration) and the task's description of it."""
+    means = optimizer.policy_means.to(task.device, task.dtype)
+    with torch.no_grad():
+        returns = task.evaluate(means)
+    weights = optimizer.policies.weights
+    descriptions = task.describe_policies(means)
+    ids = optimizer.policy_set.ids.tolist()
+    return [
+        {
+            "id": ids[k],
+            "mean": optimizer.policy_means[k].tolist(),
+            "covariance": optimizer.policy_covariances[k].tolist(),
+            "weight": float(weights[k]),
+            "return_of_mean": float(returns[k]),
+            "description": descriptions[k],
+        }
+        for k in range(optimizer.num_policies)
+    ]
+
+
+def write_results(out: Path, results: dict, optimizer) -> None:
+    """``results.json`` (the policies, the best return, the learning curves) and
+    ``policies.pt`` (the policies, and DIPOLE's mixture over [θ, r], as ``GaussianMixture``
+    state dicts), each written atomically."""
+    artefacts = {"policies": optimizer.policies.state_dict()}
+    if isinstance(optimizer, Dipole):
+        artefacts["mixture"] = optimizer.mixture.state_dict()
+    atomic_save(artefacts, out / "policies.pt")
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1, allow_nan=False))
