@@ -1,0 +1,41 @@
+"""Matching a clustering's components to the policies (dipole_torch.mechanisms.matching)."""
+
+import torch
+from test_optimizer import started_dipole, two_optima
+
+from dipole_torch.dp.state import DPMixtureState
+from dipole_torch.mechanisms.matching import adopt_components, match_by_overlap
+
+F64 = torch.float64
+
+
+def test_components_continue_the_policy_owning_most_of_their_samples_largest_first():
+    # Old policies 10 and 20 (positions 0, 1); component 0 holds 3 of policy 10's samples,
+    # component 1 holds 2 of 10's and 2 of 20's, component 2 one of 20's.
+    labels = torch.tensor([0, 0, 0, 1, 1, 1, 1, 2])
+    old = torch.tensor([0, 0, 0, 0, 0, 1, 1, 1])
+    continues = match_by_overlap(labels, old, 3, torch.tensor([10, 20]))
+    # 3 (component 0, policy 10) is matched first; then component 1 takes policy 20 (2);
+    # component 2 is left for a new policy.
+    assert continues.tolist() == [10, 20, -1]
+    # Equal overlaps: the first in the flattened order wins, and one policy continues once.
+    assert match_by_overlap(torch.tensor([0, 1]), torch.tensor([0, 0]), 2, torch.tensor([7]))[
+        0
+    ] in (7, -1)
+    assert sorted(match_by_overlap(torch.tensor([0, 1]), torch.tensor([0, 0]), 2,
+                                   torch.tensor([7])).tolist()) == [-1, 7]  # fmt: skip
+
+
+def test_adopted_components_become_the_policies_the_best_max_policies_kept():
+    opt = started_dipole(2, two_optima)
+    y = torch.tensor([[1.0, 1.0, 0.9], [1.1, 1.0, 0.8], [-1.0, -1.0, 0.5], [3.0, 3.0, 0.1]])
+    y = y.to(F64)
+    opt.archive.replace(y[:, :2].clone(), torch.tensor([-0.1, -0.2, -0.5, -9.0], dtype=F64),
+                        torch.zeros(4, dtype=torch.long))  # fmt: skip
+    state = DPMixtureState.from_labels(y, torch.tensor([0, 0, 1, 2]), opt.dp_state.prior)
+    opt.options = opt.options.replace(max_policies=2)
+    components = adopt_components(opt, state)
+    assert components.tolist() == [0, 1]  # component 2 (best return -9) dropped
+    assert opt.num_policies == 2 and torch.equal(opt.policy_means, state.means[:2, :2])
+    assert opt.owner.tolist() == [0, 0, 1]  # its sample went with it
+    assert opt.active.all() and (opt.policy_set.success == 2.0 / 11.0).all()

@@ -1,0 +1,124 @@
+"""DIPOLE's options (dipole_torch.options): one validated object; every combination of the
+switches runs or is refused at construction naming the conflict."""
+
+import itertools
+import math
+
+import pytest
+import torch
+
+from dipole_torch import Dipole, DipoleOptions
+from dipole_torch.archive import PROBE
+from dipole_torch.options import PAPER
+
+F64 = torch.float64
+OPTIMA = torch.tensor([[1.5, 0.0], [-1.5, 0.0]], dtype=F64)
+
+
+def two_optima(theta: torch.Tensor) -> torch.Tensor:
+    """``[B]`` two Gaussian bumps of height 1 at (±1.5, 0) on a floor of 0.05: positive."""
+    d2 = (theta[:, None, :] - OPTIMA).square().sum(-1)
+    return 0.05 + (-d2 / 0.5).exp().amax(-1)
+
+
+SWITCHES = list(
+    itertools.product(
+        ("policy", "global"),  # importance
+        ("success", "clustering"),  # exploration
+        (0.0, 0.2),  # explore
+        (False, True),  # hill_valley
+        (None, 4),  # max_sampled
+        (None, "positive"),  # reward_range
+    )
+)
+
+
+@pytest.mark.parametrize(
+    "importance, exploration, explore, hill_valley, max_sampled, rewards", SWITCHES
+)
+def test_every_combination_of_the_switches_runs(
+    importance, exploration, explore, hill_valley, max_sampled, rewards
+):
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        1.0,
+        importance=importance,
+        exploration=exploration,
+        explore=explore,
+        hill_valley=hill_valley,
+        max_sampled=max_sampled,
+        reward_range=rewards,
+        generator=torch.Generator().manual_seed(0),
+    )
+    probes = 0
+    while opt.trials < 200:
+        theta = opt.ask(max_rows=200 - opt.trials)
+        probes += int((opt.asked_owner[: theta.shape[0]] == PROBE).sum())
+        opt.tell(theta, two_optima(theta))
+    assert opt.trials == 200
+    assert torch.isfinite(opt.policy_means).all() and torch.isfinite(opt.policy_covariances).all()
+    assert opt.best()[1] > 0.95  # a policy found a top (the first batch's best: ~0.5)
+    assert (probes > 0) == hill_valley  # the switch does what it says, in either variant
+
+
+@pytest.mark.parametrize("matching", ["overlap", "replace"])
+def test_the_papers_variant_with_one_mechanism_more_runs(matching):
+    # Formerly crashing or silently ignored: scouts and hill-valley probes in the paper's
+    # variant (the scouts are warm-started as singletons).
+    opt = Dipole.paper(
+        torch.zeros(2, dtype=F64), 1.0, explore=0.2, hill_valley=True, matching=matching,
+        generator=torch.Generator().manual_seed(1),
+    )  # fmt: skip
+    owners = set()
+    while opt.trials < 200:
+        theta = opt.ask(max_rows=200 - opt.trials)
+        owners |= set(opt.asked_owner[: theta.shape[0]].tolist())
+        opt.tell(theta, two_optima(theta))
+    assert {-1, PROBE} <= owners  # scouts and probes were asked
+    assert opt.best()[1] > 0.95
+
+
+def test_a_combination_that_cannot_run_is_refused_naming_the_conflict():
+    with pytest.raises(ValueError, match=r"retire_std=0.001 needs matching='overlap'"):
+        DipoleOptions(matching="replace")
+    with pytest.raises(ValueError, match="retire_std"):
+        Dipole.paper(torch.zeros(2), 1.0, retire_std=1e-3)
+    assert DipoleOptions(matching="replace", retire_std=0.0).matching == "replace"
+
+
+@pytest.mark.parametrize(
+    "changes, error, message",
+    [
+        ({"regularization": "x"}, ValueError, "regularization must be a real number, got 'x'"),
+        ({"explore": "x"}, ValueError, "explore must be a real number, got 'x'"),
+        ({"explore": 1.5}, ValueError, r"explore must lie in \[0, 1\], got 1.5"),
+        ({"hill_valley": "no"}, ValueError, "hill_valley must be True or False, got 'no'"),
+        ({"reward_weighted": 1}, ValueError, "reward_weighted must be True or False"),
+        ({"importance": "best"}, ValueError, "importance must be 'policy' or 'global'"),
+        ({"matching": None}, ValueError, "matching must be 'overlap' or 'replace'"),
+        ({"alpha": math.nan}, ValueError, r"alpha \(DP concentration\) must be positive"),
+        ({"m": 2.5}, ValueError, r"m \(auxiliary components\) must be a positive integer"),
+        ({"reward_floor": 1.0}, ValueError, r"reward_floor must lie in \(0, 1\)"),
+        ({"reward_range": (1.0, "a")}, ValueError, "reward_range must be None, .low, high."),
+        ({"sweeps": 0}, ValueError, "sweeps must be a positive integer"),
+        ({"alhpa": 2.0}, TypeError, "unknown DIPOLE option.*'alhpa'"),
+    ],
+)
+def test_each_option_is_checked_once_naming_it(changes, error, message):
+    with pytest.raises(error, match=message):
+        DipoleOptions().replace(**changes)
+    with pytest.raises(error, match=message):
+        Dipole(torch.zeros(2), 1.0, **changes)
+
+
+def test_the_papers_set_and_a_checked_copy():
+    paper = DipoleOptions.paper()
+    assert all(getattr(paper, key) == value for key, value in PAPER.items())
+    assert Dipole.paper(torch.zeros(2), 1.0, alpha=2.0).options == DipoleOptions.paper(alpha=2.0)
+    options = DipoleOptions()
+    copy = options.replace(explore=0.1)
+    assert copy.explore == 0.1 and options.explore == 0.05  # frozen: a new object
+    with pytest.raises(AttributeError):
+        options.explore = 0.3  # type: ignore[misc]
+    mixed = Dipole(torch.zeros(2), 1.0, options=paper, M=3).options
+    assert mixed == paper.replace(M=3)

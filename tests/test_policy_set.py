@@ -1,0 +1,95 @@
+"""PolicySet (every per-policy tensor, re-indexed together) and SampleArchive (the kept
+samples and their owners)."""
+
+import math
+
+import pytest
+import torch
+
+from dipole_torch import Dipole, Power
+from dipole_torch.archive import SampleArchive
+from dipole_torch.policy_set import PolicyField, PolicySet
+
+F64 = torch.float64
+
+
+def three_policies() -> PolicySet:
+    policies = PolicySet(
+        torch.arange(6, dtype=F64).reshape(3, 2), torch.eye(2, dtype=F64).repeat(3, 1, 1)
+    )
+    policies.register("success", PolicyField(default=0.5))
+    policies.register("paths", PolicyField(shape=(2,)))
+    return policies
+
+
+def test_one_index_reindexes_every_tensor_and_ids_stay_with_their_policy():
+    policies = three_policies()
+    policies.success = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
+    policies.active = torch.tensor([True, False, True])
+    policies.index(torch.tensor([2, 0]))
+    assert policies.means.tolist() == [[4.0, 5.0], [0.0, 1.0]]
+    assert policies.success.tolist() == [0.3, 0.1] and policies.active.tolist() == [True, True]
+    assert policies.ids.tolist() == [2, 0] and policies.paths.shape == (2, 2)
+    policies.extend(torch.zeros(2, 2, dtype=F64), torch.eye(2, dtype=F64).repeat(2, 1, 1))
+    assert policies.ids.tolist() == [2, 0, 3, 4]  # new numbers, never reused
+    assert policies.success.tolist() == [0.3, 0.1, 0.5, 0.5]  # new policies at the default
+    policies.reset_fields(torch.tensor([True, False, False, False]))
+    assert policies.success.tolist() == [0.5, 0.1, 0.5, 0.5]
+    policies.reset(torch.zeros(1, 2, dtype=F64), torch.eye(2, dtype=F64)[None])
+    assert (
+        policies.ids.tolist() == [5] and len(policies) == 1 and policies.success.tolist() == [0.5]
+    )
+
+
+def test_fields_are_registered_once_and_unknown_ones_refused():
+    policies = three_policies()
+    with pytest.raises(ValueError, match="'success' exists already"):
+        policies.register("success", PolicyField())
+    with pytest.raises(AttributeError, match="no field 'speed'"):
+        policies.speed = torch.zeros(3)
+    with pytest.raises(ValueError, match="unknown policy field"):
+        policies.extend(torch.zeros(1, 2, dtype=F64), torch.eye(2, dtype=F64)[None], speed=1)
+
+
+def test_a_state_of_another_shape_is_refused_naming_the_key():
+    policies = three_policies()
+    state = policies.state_dict()
+    other = three_policies()
+    other.load_state_dict(state, torch.device("cpu"))
+    assert torch.equal(other.means, policies.means) and other.next_id == policies.next_id
+    bad = dict(state, success=torch.zeros(2, dtype=F64))
+    with pytest.raises(ValueError, match=r"state_dict\['success'\] must have shape \[3\]"):
+        other.load_state_dict(bad, torch.device("cpu"))
+    old = {k: v for k, v in state.items() if k not in ("paths", "policy_ids", "next_policy_id")}
+    other.load_state_dict(old, torch.device("cpu"))  # a checkpoint from before them
+    assert other.paths.abs().sum() == 0 and other.ids.tolist() == [0, 1, 2]
+
+
+def test_the_archive_keeps_owners_with_their_samples():
+    archive = SampleArchive(1, torch.device("cpu"))
+    archive.append(
+        torch.tensor([[0.0], [1.0], [2.0], [3.0], [4.0]], dtype=F64),
+        torch.tensor([1.0, 5.0, 3.0, -2.0, 4.0], dtype=F64),
+        torch.tensor([0, 1, 0, -1, 2]),
+    )
+    assert archive.per_policy("amax", 4).tolist() == [3.0, 5.0, 4.0, -math.inf]
+    assert archive.per_policy("amin", 3).tolist() == [1.0, 5.0, 4.0]
+    assert archive.mean_rewards(3).tolist() == [2.0, 5.0, 4.0]
+    assert archive.counts(3).tolist() == [2, 1, 1]
+    best = archive.best_samples(torch.full((4, 1), 9.0, dtype=F64))
+    assert best[:, 0].tolist() == [2.0, 1.0, 4.0, 9.0]  # none kept: the mean
+    archive.drop_policies(torch.tensor([True, False, True]))
+    assert archive.owner.tolist() == [0, 0, -1, 1]  # policy 2 renumbered 1; scouts stay
+    assert archive.thetas[:, 0].tolist() == [0.0, 2.0, 3.0, 4.0]
+
+
+@pytest.mark.parametrize("build", [Dipole, Power])
+def test_a_state_of_another_dimension_is_refused(build):
+    three = build(torch.zeros(3, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
+    theta = three.ask()
+    three.tell(theta, -theta.square().sum(-1))
+    two = build(torch.zeros(2, dtype=F64), 1.0)
+    before = two.state_dict()
+    with pytest.raises(ValueError, match=r"state_dict\['thetas'\] must have shape \[N, 2\]"):
+        two.load_state_dict(three.state_dict())
+    two.load_state_dict(before)
