@@ -9,7 +9,7 @@ global-RNG stream is left exactly as it was.
 The (inverse-)Wishart draws of the Gibbs sweep are the exception: they are made directly from
 the generator by Bartlett's decomposition (:func:`inverse_wishart`, :func:`wishart`), because
 ``torch.distributions.Wishart`` factorises its scale once per draw, checks its support and
-draws every sample twice, which made them 99 % of a sweep at N = 1000, p = 51.
+draws every sample twice, which made them most of a sweep's time at large N.
 """
 
 from __future__ import annotations
@@ -319,8 +319,8 @@ def wishart(
 
 def broadcast_shape(*shapes: Sequence[int]) -> tuple[int, ...]:
     """The broadcast of ``shapes``, as ``torch.broadcast_shapes`` gives it, by hand: that one
-    costs ~0.3 ms a call in torch 2.13, and its first call in a process imports sympy
-    (~1 s). Raises ``ValueError`` naming the shapes when they do not broadcast."""
+    costs more than the draws it serves, and its first call in a process imports sympy.
+    Raises ``ValueError`` naming the shapes when they do not broadcast."""
     width = max((len(shape) for shape in shapes), default=0)
     result = [1] * width
     for shape in shapes:

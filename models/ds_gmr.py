@@ -212,7 +212,7 @@ class DSGMR:
             # h_i(t) of the time marginal, as _time_activations computes them, written out in
             # float64 from __init__'s definitions: log h_i(t) = log N(t; μ_i^t, σ_t²) −
             # log Σ_j N(t; μ_j^t, σ_t²), the weights and σ_t being equal. (No torch
-            # distribution: the first one a process builds imports sympy, ~0.9 s.)
+            # distribution: the first one a process builds imports sympy.)
             components = self.num_attractors + (self.goal_time is not None)
             times = np.arange(self.steps + 1, dtype=np.float64)[:, None] * self.dt
             centres = np.arange(components, dtype=np.float64) * self._spacing

@@ -6,11 +6,10 @@ end-effector positions and position Jacobians of a batch of configurations with 
 numpy operations a call.
 
 Why: a learning run rolls out a handful of policies at a time, and an inverse-kinematics
-step (one forward pass and Jacobian) costs about 0.9 ms through pytorch-kinematics' eager
-torch, nearly all of it per-operation overhead (~5 µs an op, ~200 ops), whatever the batch.
-Here a whole tracking step (this and the DLS solve, ~35 numpy calls) costs about 0.1 ms at
-B ≤ 10: a viapoint ``evaluate`` is 8× faster at B = 1 and 3.4× at B = 100
-(``benchmarks/bench_rollout.py --task viapoint``). It is the same maths as
+step (one forward pass and Jacobian) through pytorch-kinematics' eager torch is nearly all
+per-operation overhead (a couple of hundred ops), whatever the batch; here a whole tracking
+step (this and the DLS solve) is a few dozen numpy calls (``benchmarks/bench_rollout.py
+--task viapoint`` measures both). It is the same maths as
 pytorch-kinematics' ``_fk_impl`` and ``jacobian_tensor``, in double precision:
 
 * every frame's local transform is ``link_offset @ joint_offset @ M(q)`` (pytorch-kinematics'

@@ -4,7 +4,7 @@ Every task is an :class:`dipole_torch.tasks.base.EpisodicTask`: it maps a batch 
 ``theta: [B, D]`` to one return each, ``r: [B]``, in a single batched rollout.
 """
 
-import dipole_torch.tasks.gym_envs  # noqa: F401  (registers dipole/CartPole-v0 and dipole/MountainCar-v0)
+import dipole_torch.tasks.gym_envs  # noqa: F401  (registers dipole/CartPole-v1 and dipole/MountainCar-v0)
 from dipole_torch.tasks.base import EpisodicTask
 
 __all__ = ["EpisodicTask"]

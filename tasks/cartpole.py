@@ -37,7 +37,7 @@ class CartPoleTask(ControlTask):
     (``engine``): on the CPU by default one episode at a time in Python floats, each stopping
     when it fails (``"python"``); on an accelerator, or when asked, as a single batched torch
     rollout, a loop over time steps only (``"torch"``). The torch :meth:`step` and
-    :meth:`step_reward` drive the gymnasium environment ``dipole/CartPole-v0``
+    :meth:`step_reward` drive the gymnasium environment ``dipole/CartPole-v1``
     (:class:`dipole_torch.tasks.gym_envs.CartPoleEnv`).
 
     ## Action Space
@@ -100,11 +100,10 @@ class CartPoleTask(ControlTask):
 
       - ``"python"``: one episode at a time, a plain Python loop over the steps in double
         precision (Python floats, whatever ``dtype``), stopped at the failure (the remaining
-        steps are counted at -1). Eager torch pays a few microseconds of overhead per tensor
-        operation, ~25 of them per step whatever the batch size, so on a CPU this is the fast
-        engine up to batches of a few hundred episodes: ~1 ms for a balanced 1000-step
-        episode and less for one that fails, against ~70 ms for a torch rollout of a small
-        batch (``python benchmarks/bench_rollout.py``).
+        steps are counted at -1). Eager torch pays a fixed overhead per tensor operation,
+        a few dozen of them per step whatever the batch size, so on a CPU this is the fast
+        engine up to batches of a few hundred episodes (``python
+        benchmarks/bench_rollout.py`` measures both).
       - ``"torch"``: a single rollout of the whole batch in ``dtype`` on ``device``, the
         engine for large batches and for accelerators.
       - ``"auto"``: ``"torch"`` on an accelerator or with ``compile``, else ``"python"``.
@@ -114,9 +113,9 @@ class CartPoleTask(ControlTask):
       rounding differ: torch's fused ``addcmul`` and vectorised sin/cos against libm's).
     * ``compile``: run the torch rollout through ``torch.compile`` (``False``). The time loop
       is cut in chunks of ``chunk`` (25) steps; compiled, a chunk becomes one fused kernel,
-      which removes the per-op overhead that dominates small batches (about 30x faster at
-      B = 50 on CPU, ~1.5x at B = 10⁴) at the price of a one-off compilation (~1 min on CPU;
-      cached by inductor afterwards). The maths is the same code, compiled or not.
+      which removes the per-op overhead that dominates small batches, at the price of a
+      one-off compilation (cached by inductor afterwards). The maths is the same code,
+      compiled or not.
     * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
       given (``"cpu"``, float32).
 

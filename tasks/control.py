@@ -95,8 +95,7 @@ def single_threaded(device: torch.device, batch_size: int, below: int = 200_000)
 
     Each step is a few dozen element-wise ops on ``[B]`` tensors: with ``B`` up to ~10⁵,
     OpenMP's fork/join costs more than it saves, and it collapses when another process
-    shares the cores (measured at ``B = 10⁴`` on 2 cores: 1 thread ~0.2 s for 1000 steps,
-    2 threads 1-16 s). The previous thread count is restored afterwards.
+    shares the cores. The previous thread count is restored afterwards.
     """
     previous = torch.get_num_threads()
     switch = device.type == "cpu" and batch_size < below and previous != 1

@@ -3,7 +3,7 @@
 
 | id                        | class                   | max_episode_steps | reward_threshold |
 |---------------------------|-------------------------|-------------------|------------------|
-| ``dipole/CartPole-v0``    | :class:`CartPoleEnv`    | 1000              | 950              |
+| ``dipole/CartPole-v1``    | :class:`CartPoleEnv`    | 1000              | 950              |
 | ``dipole/MountainCar-v0`` | :class:`MountainCarEnv` | 100               | 50               |
 
 Each environment steps a batch of one state through its task's own torch physics
@@ -211,7 +211,7 @@ def _cartpole_bounds(task: CartPoleTask) -> tuple[np.ndarray, np.ndarray]:
 
 class CartPoleEnv(_TaskEnv):
     r""":class:`dipole_torch.tasks.cartpole.CartPoleTask` as the gymnasium environment
-    ``dipole/CartPole-v0``.
+    ``dipole/CartPole-v1``.
 
     ## Description
 
@@ -304,7 +304,7 @@ class CartPoleEnv(_TaskEnv):
         >>> import gymnasium as gym
         >>> import numpy as np
         >>> import dipole_torch.tasks  # registers the environments
-        >>> env = gym.make("dipole/CartPole-v0", render_mode="rgb_array")
+        >>> env = gym.make("dipole/CartPole-v1", render_mode="rgb_array")
         >>> env.spec.max_episode_steps, env.spec.reward_threshold
         (1000, 950.0)
         >>> observation, info = env.reset(seed=0)
@@ -473,13 +473,13 @@ class MountainCarEnv(_TaskEnv):
 # id, entry point, max_episode_steps (the task's default horizon), reward_threshold (the
 # class docstrings say how each was chosen).
 ENV_SPECS = (
-    ("dipole/CartPole-v0", "dipole_torch.tasks.gym_envs:CartPoleEnv", 1000, 950.0),
+    ("dipole/CartPole-v1", "dipole_torch.tasks.gym_envs:CartPoleEnv", 1000, 950.0),
     ("dipole/MountainCar-v0", "dipole_torch.tasks.gym_envs:MountainCarEnv", 100, 50.0),
 )
 
 
 def register_envs() -> None:
-    """Register ``dipole/CartPole-v0`` and ``dipole/MountainCar-v0`` (idempotent)."""
+    """Register ``dipole/CartPole-v1`` and ``dipole/MountainCar-v0`` (idempotent)."""
     for env_id, entry_point, max_episode_steps, reward_threshold in ENV_SPECS:
         if env_id not in gym.registry:
             gym.register(

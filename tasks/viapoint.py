@@ -53,7 +53,7 @@ class ViapointTask(EpisodicTask):
     alternative viapoints are defined, so that several distinct routes are optimal (with the
     default layout, 2 alternatives at each of 3 pass times: 2³ = 8 routes, all with reward 1).
     Any serial-chain arm given as a URDF can take the WAM's place (``urdf``, ``end_effector``,
-    ``initial_joints`` and a layout it can reach; see the README's "Use your own arm").
+    ``initial_joints`` and a layout it can reach; see the docs' "Your own arm").
 
     A policy is a DS-GMR trajectory (:class:`dipole_torch.models.ds_gmr.DSGMR`, Calinon et al.
     2012): a critically damped virtual spring-damper ``ẍ = K_P (x̂(t) − x) − K_V ẋ`` pulls the
@@ -80,11 +80,9 @@ class ViapointTask(EpisodicTask):
       (:class:`dipole_torch.models.numpy_kinematics.NumpyChain`, built from the same
       pytorch-kinematics chain), returned in the task's dtype; not differentiable. A
       learning run rolls out a few policies at a time, where eager torch pays its
-      per-operation overhead (~0.9 ms an IK step, whatever the batch) and numpy about a
-      tenth of it: an ``evaluate`` is 8× faster at B = 1, 3.4× at B = 100
-      (``benchmarks/bench_rollout.py --task viapoint``). The two give the same paths to
-      float rounding (float32 torch against float64 numpy: 2.4e-7 m near θ0, 3e-10 m
-      against float64 torch; ``tests/test_viapoint.py``);
+      per-operation overhead whatever the batch and numpy a fraction of it
+      (``benchmarks/bench_rollout.py --task viapoint`` measures both). The two give the
+      same paths to float rounding (``tests/test_viapoint.py``);
     * ``"auto"`` (default): numpy on the CPU, unless ``theta`` requires a gradient (and
       gradients are enabled); torch on an accelerator.
 

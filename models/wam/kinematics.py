@@ -26,7 +26,7 @@ kinematics.ArmKinematics`), the WAM included (``kinematics: pytorch_kinematics``
 :class:`WamKinematics` is the opt-in fast path for this arm (``kinematics: wam_dh``): the same
 interface, with positions and position Jacobians computed from the DH table directly
 (``tests/test_wam.py`` checks it against the pytorch-kinematics chain to 1e-7 m). Its speed-up
-is measured by ``benchmarks/bench_rollout.py`` (numbers in the README's benchmark section).
+is measured by ``benchmarks/bench_rollout.py`` (numbers in the docs' benchmark pages).
 """
 
 from __future__ import annotations
