@@ -675,11 +675,11 @@ class ViapointTask(EpisodicTask):
         ``labels`` (one per policy) replace the default legend entries (route and return);
         ``title`` replaces the default title (the arm and the number of policies).
 
-        The figure is sized for a TensorBoard image card, which shows an image at its own
-        pixel size up to the card's width: 600 px wide (6 in at 100 dpi), the 3-D box zoomed
-        to fill the axes, a few ticks per axis, and the legend below the axes (paths in the
-        left column, viapoints, obstacle, start and target in the right one), the figure
-        growing downwards with the number of entries. It is a bare
+        The figure is sized for a TensorBoard image card, which scales an image down to the
+        card's width: 440 px wide (4.4 in at 100 dpi), the 3-D box zoomed to fill the axes,
+        a few ticks per axis, and the legend below the axes (paths in the left column,
+        viapoints, obstacle, start and target in the right one), the figure growing
+        downwards with the number of entries. It is a bare
         :class:`matplotlib.figure.Figure` on the Agg canvas (no pyplot state, no display):
         TensorBoard's ``add_figure`` renders and closes it, or call ``plt.close(figure)`` /
         drop the reference.
@@ -702,13 +702,13 @@ class ViapointTask(EpisodicTask):
             ]
         if len(labels) != path.shape[0]:
             raise ValueError(f"labels must give one entry per policy ({path.shape[0]})")
-        # Laid out for TensorBoard, which shows an image at its own pixel size up to the width
-        # of its card: 600 px wide at 100 dpi, 8-9 pt text, the legend below the axes.
+        # Laid out for TensorBoard, which scales an image down to the width of its card
+        # (about 350-420 px): 440 px wide at 100 dpi, 7-9 pt text, the legend below the axes.
         rows = max(path.shape[0], len(self.num_alternatives) + 2 + bool(self.obstacles))
-        legend_height = 0.2 + 0.165 * rows  # in: 8 pt lines
-        axes_height = 3.1  # in
+        legend_height = 0.16 + 0.145 * rows  # in: 7 pt lines
+        axes_height = 2.6  # in
         height = axes_height + legend_height
-        figure = Figure(figsize=(6.0, height), dpi=100)
+        figure = Figure(figsize=(4.4, height), dpi=100)
         FigureCanvasAgg(figure)
         ax = figure.add_axes(
             (0.0, legend_height / height, 1.0, axes_height / height), projection="3d"
@@ -731,11 +731,11 @@ class ViapointTask(EpisodicTask):
                     facecolors="none",
                     edgecolors="black",
                     linewidths=1.3,
-                    label=f"viapoints t = {self.pass_times[i]:g} s",
+                    label=f"via t = {self.pass_times[i]:g} s",
                 )
             )
             for point, name in zip(viapoints, names[i], strict=True):
-                ax.text(*point, f" {name}", fontsize=8, color="0.25")
+                ax.text(*point, f" {name}", fontsize=7, color="0.25")
         # Obstacles as wireframe spheres; their extremes join the box so the scale stays equal.
         u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 24), np.linspace(0, np.pi, 12))
         unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])  # [3, 12, 24]
@@ -760,16 +760,16 @@ class ViapointTask(EpisodicTask):
             # Up to 5 ticks on the longest side, fewer on shorter ones: no crowded labels.
             bins = int(np.clip(round(5 * length / aspect.max()), 2, 5))
             axis.set_major_locator(MaxNLocator(nbins=bins, steps=[1, 2, 5, 10]))
-            axis.set_label_text(f"{name} [m]", fontsize=9)
-            axis.labelpad = 0
-        ax.tick_params(labelsize=8, pad=0)
+            axis.set_label_text(f"{name} [m]", fontsize=8)
+            axis.labelpad = -2
+        ax.tick_params(labelsize=7, pad=-1)
         ax.view_init(elev=20, azim=-35)
         _zoom_to_fill(ax, aspect, top_margin=22.0)  # px: the band the title goes in
         arm = "WAM" if self.kinematics.urdf_path == URDF_PATH.resolve() else None
         arm = arm or self.kinematics.robot_name
         policies = f"{path.shape[0]} {'policy' if path.shape[0] == 1 else 'policies'}"
         # In the band at the top of the axes, which reach the figure's top edge.
-        ax.set_title(title or f"{arm} end-effector paths of {policies}", fontsize=10, y=0.97, pad=0)
+        ax.set_title(title or f"{arm} end-effector paths of {policies}", fontsize=9, y=0.97, pad=0)
         # Paths in the left column, the points in the right one (blank entries pad them).
         blank = Line2D([], [], linestyle="none", label=" ")
         handles = paths + [blank] * (rows - len(paths)) + points + [blank] * (rows - len(points))
@@ -779,11 +779,11 @@ class ViapointTask(EpisodicTask):
             bbox_to_anchor=(0.5, 0.0),
             bbox_transform=figure.transFigure,
             ncol=2,
-            fontsize=8,
+            fontsize=7,
             frameon=False,
-            borderaxespad=0.4,
-            columnspacing=2.0,
-            handlelength=1.6,
+            borderaxespad=0.3,
+            columnspacing=1.2,
+            handlelength=1.4,
         )
         return figure
 

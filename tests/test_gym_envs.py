@@ -15,7 +15,7 @@ from gymnasium.error import DependencyNotInstalled
 from gymnasium.utils.env_checker import check_env
 from gymnasium.utils.passive_env_checker import env_render_passive_checker
 
-ENV_IDS = ["dipole/CartPole-v0", "dipole/MountainCar-v0"]
+ENV_IDS = ["dipole/CartPole-v1", "dipole/MountainCar-v0"]
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
 
 
@@ -36,7 +36,7 @@ def test_env_checker_passes_without_warnings(env_id):
 
 @pytest.mark.parametrize(
     ("env_id", "horizon", "threshold"),
-    [("dipole/CartPole-v0", 1000, 950.0), ("dipole/MountainCar-v0", 100, 50.0)],
+    [("dipole/CartPole-v1", 1000, 950.0), ("dipole/MountainCar-v0", 100, 50.0)],
 )
 def test_specs_carry_the_horizon_and_the_solved_threshold(env_id, horizon, threshold):
     spec = gym.spec(env_id)
@@ -66,7 +66,7 @@ def _gym_return(env, task, theta, initial_state, to_action):
 )
 @pytest.mark.parametrize("engine", ["torch", "python"])
 def test_cartpole_env_return_equals_batched_rollout(theta, engine):
-    env = gym.make("dipole/CartPole-v0", steps=300, engine=engine)
+    env = gym.make("dipole/CartPole-v1", steps=300, engine=engine)
     task = env.unwrapped.task
     theta = torch.tensor(theta)
     start = task.sample_initial_state(1, torch.Generator().manual_seed(5))[0]
@@ -94,7 +94,7 @@ def test_mountain_car_env_return_equals_batched_rollout(theta, x0, engine):
 
 
 def test_envs_use_the_task_physics_and_seeding():
-    env = gym.make("dipole/CartPole-v0")
+    env = gym.make("dipole/CartPole-v1")
     assert isinstance(env.unwrapped.task, CartPoleTask)
     assert isinstance(gym.make("dipole/MountainCar-v0").unwrapped.task, MountainCarTask)
     first, _ = env.reset(seed=7)
@@ -107,7 +107,7 @@ def test_envs_use_the_task_physics_and_seeding():
 def test_cartpole_observations_stay_in_the_space_from_extreme_starts(force_limit):
     # Starts at the corners of start_space (the fastest live states) under full pushes, until
     # each episode fails: every observation, the failing one included, lies in the space.
-    env = gym.make("dipole/CartPole-v0", force_limit=force_limit).unwrapped
+    env = gym.make("dipole/CartPole-v1", force_limit=force_limit).unwrapped
     high = env.start_space.high
     rng = np.random.default_rng(0)
     for corner in range(16):
@@ -130,7 +130,7 @@ def test_cartpole_observations_stay_in_the_space_from_extreme_starts(force_limit
 
 
 def test_env_bad_inputs():
-    env = gym.make("dipole/CartPole-v0").unwrapped
+    env = gym.make("dipole/CartPole-v1").unwrapped
     with pytest.raises(RuntimeError, match="reset"):
         env.step(np.zeros(1, dtype=np.float32))
     with pytest.raises(ValueError, match="initial_state"):
@@ -163,7 +163,7 @@ def test_env_bad_inputs():
 
 
 def test_cartpole_action_is_the_push_as_a_fraction_of_force_limit():
-    env = gym.make("dipole/CartPole-v0").unwrapped
+    env = gym.make("dipole/CartPole-v1").unwrapped
     assert (env.action_space.low, env.action_space.high) == (-1.0, 1.0)
     start = [0.0, 0.0, 0.01, 0.0]
     task = env.task
@@ -197,7 +197,7 @@ def test_rgb_array_frames_are_uint8_images_and_the_fps_is_the_time_step(env_id):
 
 
 def test_cartpole_frames_follow_the_cart_and_the_pole():
-    env = gym.make("dipole/CartPole-v0", render_mode="rgb_array").unwrapped
+    env = gym.make("dipole/CartPole-v1", render_mode="rgb_array").unwrapped
 
     def frame(x, angle):
         env.reset(options={"initial_state": [x, 0.0, angle, 0.0]})

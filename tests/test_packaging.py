@@ -69,7 +69,7 @@ from dipole_torch.tasks.viapoint import ViapointTask
 
 assert dipole_torch.__path__ == [target + "/dipole_torch"], dipole_torch.__path__
 assert dipole_torch.tasks.viapoint.__file__.startswith(target), dipole_torch.tasks.__file__
-for name in ("dipole/CartPole-v0", "dipole/MountainCar-v0"):
+for name in ("dipole/CartPole-v1", "dipole/MountainCar-v0"):
     env = gym.make(name)
     env.reset(seed=0)
     env.step(env.action_space.sample())

@@ -63,7 +63,7 @@ def test_outputs_and_tensorboard_scalars(finished_run):
         "reward/mean",
         "reward/best_so_far",
         "search/policies",
-        "search/exploration_std",
+        "search/log10_exploration_std",
     } <= tags
     assert not [tag for tag in tags if tag.startswith("hparam")]  # those are in HPARAMS only
     best = events.Scalars("reward/best")

@@ -347,7 +347,7 @@ def figure_layout_problems(figure, margins: bool = True) -> list[str]:
     width)."""
     figure.canvas.draw()
     width, height = figure.canvas.get_width_height()
-    problems = [] if 500 <= width <= 700 else [f"{width} px wide"]
+    problems = [] if 400 <= width <= 480 else [f"{width} px wide"]  # a card: ~350-420 px
     ax = figure.axes[0]
     renderer = figure.canvas.get_renderer()
     legend = ax.get_legend().get_window_extent(renderer)

@@ -6,8 +6,8 @@ TensorBoard's Time Series tab opens on the returns:
 
 * ``reward/best``, ``reward/mean``: the best and mean of each policy's latest return
   (``last_rewards``); ``reward/best_so_far``: the best return evaluated so far;
-* ``search/policies``: the number of policies; ``search/exploration_std``: the mean
-  exploration std of the sampled policies relative to Σ_start's (log scale: it shrinks
+* ``search/policies``: the number of policies; ``search/log10_exploration_std``: the mean
+  exploration std of the active policies relative to Σ_start's, in log10 (it shrinks
   geometrically as they converge); ``search/rewards``: histogram of the policies' returns;
   ``search/figure``: the task's policy figure, where it has one;
 * ``world/before``, ``world/after``, ``world/block``: the block experiment (viapoint_blocked).
@@ -38,7 +38,7 @@ LAYOUT = {
     },
     "search": {
         "policies": ["Multiline", ["search/policies"]],
-        "relative exploration std (log10)": ["Multiline", ["search/exploration_std"]],
+        "relative exploration std (log10)": ["Multiline", ["search/log10_exploration_std"]],
     },
 }
 
@@ -78,9 +78,9 @@ class Board:
         self.writer.add_scalar("reward/mean", row["mean"], step)
         self.writer.add_scalar("reward/best_so_far", row["best_so_far"], step)
         self.writer.add_scalar("search/policies", row["num_policies"], step)
-        exploration = row["exploration_std"]
-        log_std = math.log10(exploration) if exploration > 0 else -math.inf
-        self.writer.add_scalar("search/exploration_std", log_std, step)
+        # log10: it shrinks geometrically as policies converge (floored: a chart drops -inf).
+        log_std = math.log10(max(row["exploration_std"], 1e-30))
+        self.writer.add_scalar("search/log10_exploration_std", log_std, step)
         self.writer.add_histogram("search/rewards", rewards.float(), step)
         return row
 
