@@ -1,0 +1,115 @@
+"""What a training run prints: a bar on a terminal, lines every ~10 % otherwise, messages never
+glued to the bar, a summary without repeats; a bad value is one line and exit status 2."""
+
+import io
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dipole_torch.training.console import Progress, summary
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_piped_output_is_a_line_every_tenth_of_the_budget(caplog):
+    caplog.set_level(logging.INFO, logger="train")
+    stream = io.StringIO()
+    progress = Progress(300, 0, stream=stream)
+    trials = 0
+    for batch in [30, *([4] * 67), 2]:
+        trials += batch
+        progress.update(trials, batch, {"best_so_far": 1000.0, "num_policies": 3})
+    progress.close()
+    lines = [r.getMessage() for r in caplog.records]
+    assert stream.getvalue() == ""  # no bar, no carriage returns
+    assert len(lines) == 10 and all("\r" not in line for line in lines)
+    assert lines[0].startswith("30 of 300 trials (10 %): best return 1000, 3 policies")
+    assert lines[-1].startswith("300 of 300 trials (100 %)")
+
+
+def test_a_terminal_gets_a_bar_and_messages_above_it():
+    stream = Terminal()
+    progress = Progress(100, 20, stream=stream)
+    with progress.messages():
+        progress.update(40, 20, {"best_so_far": 0.97211, "num_policies": 2})
+        logging.getLogger("train").warning("a message")
+    progress.close()
+    text = stream.getvalue()
+    assert "40/100" in text and "best=0.9721" in text and "policies=2" in text
+
+
+def test_the_summary_names_each_policy_once_by_id():
+    results = {
+        "best_reward": 1000.0,
+        "trials": 500,
+        "trial_budget": 500,
+        "policies": [
+            {"id": 7, "return_of_mean": 0.5, "description": ""},
+            {"id": 3, "return_of_mean": 0.9, "description": "route (0, 1): return 0.900"},
+        ],
+    }
+    text = summary("dipole", "cartpole", results, "outputs/x")
+    lines = text.splitlines()
+    assert lines[0] == (
+        "dipole on cartpole: best return 1000 in 500 trials (budget 500); 2 policies (their "
+        "means, without exploration):"
+    )
+    assert lines[1:3] == ["  policy 3: route (0, 1): return 0.900", "  policy 7: return 0.5"]
+
+
+def run(*overrides, env=None):
+    return subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), *overrides],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, HYDRA_FULL_ERROR="0", **(env or {})),
+    )
+
+
+@pytest.mark.parametrize(
+    "overrides, line",
+    [
+        (["trials=-1"], "error: trials (the trial budget) must be a positive integer, got -1"),
+        (["device=cuda:7"], "error: device='cuda:7' but"),
+        (["device=tpu"], "error: device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'tpu'"),
+        (["algo.optimizer.alpha=-1"], "error: algo.optimizer: alpha (DP concentration) must be"),
+        (["task.env.width=-1"], "error: task.env: "),
+        (["resume=/no/such/checkpoint.pt"], "error: train.py checkpoint '/no/such/checkpoint.pt'"),
+    ],
+)
+def test_a_bad_value_is_one_line_naming_it_and_exit_status_2(overrides, line, tmp_path):
+    result = run(*overrides, f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 2, result.stdout + result.stderr
+    errors = [text for text in result.stderr.splitlines() if text.strip()]
+    assert len(errors) == 1 and errors[0].startswith(line), result.stderr
+    assert "Traceback" not in result.stderr + result.stdout
+
+
+def test_a_second_signal_stops_at_once_without_a_traceback(tmp_path):
+    process = subprocess.Popen(
+        [sys.executable, str(ROOT / "train.py"), "task=viapoint", "trials=3000", "progress=false",
+         f"hydra.run.dir={tmp_path}"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.time() + 60
+    while not (tmp_path / "tensorboard").exists() and time.time() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)  # in the loop
+    process.send_signal(signal.SIGTERM)
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
