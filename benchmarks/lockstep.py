@@ -90,29 +90,57 @@ def plot_best_and_average(
     ylabel: str,
     xlabel: str = "trials",
     suptitle: str | None = None,
-    ylim: tuple[float, float] | None = None,
+    bounds: tuple[float, float] | None = None,
 ) -> None:
-    """Two panels (best policy, average of policies): mean ± std over runs of each curve.
+    """Two panels (best policy, average of policies): each curve's mean over runs, with a
+    band from its 25 % to its 75 % quantile over runs (inside the range the runs reached,
+    unlike ± std). The y-axis spans the data (within ``bounds``, the feasible range), the
+    legend sits below the panels. Written as ``path`` (PNG, 200 dpi) and as PDF beside it.
 
     Args:
         curves: label -> ``[runs, 2, G]`` values from :func:`on_grid`.
         colors: label -> matplotlib colour.
     """
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), sharey=True)
+    low, high = np.inf, -np.inf
     for ax, which, title in ((axes[0], 0, "best policy"), (axes[1], 1, "average of policies")):
         for label, values in curves.items():
-            mean, std = np.nanmean(values[:, which], 0), np.nanstd(values[:, which], 0)
+            mean, (q25, q75) = np.nanmean(values[:, which], 0), quartiles(values[:, which])
             ax.plot(grid, mean, color=colors[label], label=label)
-            ax.fill_between(grid, mean - std, mean + std, color=colors[label], alpha=0.2)
+            ax.fill_between(grid, q25, q75, color=colors[label], alpha=0.2, lw=0)
+            low, high = min(low, np.nanmin(q25), np.nanmin(mean)), max(high, np.nanmax(q75))
         ax.set_title(f"{task_title}: {title}")
         ax.set_xlabel(xlabel)
-        if ylim is not None:
-            ax.set_ylim(*ylim)
+        ax.set_xlim(grid[0], grid[-1])
         ax.grid(alpha=0.3)
+    axes[0].set_ylim(*data_limits(low, high, bounds))
     axes[0].set_ylabel(ylabel)
-    axes[0].legend(loc="lower right", fontsize="small")
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False)
     if suptitle:
         fig.suptitle(suptitle)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(fig, path)
     plt.close(fig)
+
+
+def quartiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``([G], [G])`` the 25 % and 75 % quantiles over runs of ``values: [runs, G]``."""
+    return np.nanquantile(values, 0.25, axis=0), np.nanquantile(values, 0.75, axis=0)
+
+
+def data_limits(
+    low: float, high: float, bounds: tuple[float, float] | None = None
+) -> tuple[float, float]:
+    """Axis limits around ``[low, high]`` with a 4 % margin, inside ``bounds``."""
+    margin = 0.04 * max(high - low, 1e-12)
+    low, high = low - margin, high + margin
+    if bounds is not None:
+        low, high = max(low, bounds[0]), min(high, bounds[1])
+    return low, high
+
+
+def save_figure(fig, path: Path) -> None:
+    """``path`` as a 200-dpi PNG and the same figure as a PDF (vector) beside it."""
+    fig.savefig(path, dpi=200)
+    fig.savefig(path.with_suffix(".pdf"))

@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from lockstep import load_task, on_grid, plot_best_and_average, run_in_lockstep
+from lockstep import load_task, on_grid, plot_best_and_average, quartiles, run_in_lockstep
 
 from dipole_torch import Dipole, Power
 
@@ -156,8 +156,9 @@ def main() -> None:
             {LABELS[algo]: COLORS[algo] for algo in curves},
             args.out / f"figure1_{name}.png",
             task_title=TASKS[name],
-            ylabel=f"return (mean ± std over {args.runs} runs)",
+            ylabel=f"return (mean; band: 25-75 % of {args.runs} runs)",
             suptitle=f"Figure 1 reproduction, {TASKS[name].lower()}: DIPOLE vs PoWER",
+            bounds=tuple(load_task(name)[0].reward_range),
         )
         task = load_task(name)[0]
         summary[name] = {
@@ -173,6 +174,11 @@ def main() -> None:
                     f"{kind}_{stat}": getattr(np, stat)(values[:, k], axis=0).round(3).tolist()
                     for k, kind in enumerate(("best", "average"))
                     for stat in ("mean", "std")
+                }
+                | {
+                    f"{kind}_q{q}": np.round(band, 3).tolist()
+                    for k, kind in enumerate(("best", "average"))
+                    for q, band in zip((25, 75), quartiles(values[:, k]), strict=True)
                 }
                 | {
                     f"final_{kind}": {

@@ -48,7 +48,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from lockstep import compose_config, load_task, on_grid, run_in_lockstep  # noqa: E402
+from lockstep import (  # noqa: E402
+    compose_config,
+    data_limits,
+    load_task,
+    on_grid,
+    quartiles,
+    run_in_lockstep,
+    save_figure,
+)
 from reproduce_viapoint import make_optimizer  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -261,11 +269,17 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
     return seeds, results, time.perf_counter() - start
 
 
+# The curves whose quartile bands switch.json holds: (column of a run's rows, name).
+BANDS = ((4, "executed"), (5, "policy_mean"), (1, "best"), (2, "average"))
+
+
 def plot(grid: np.ndarray, curves: dict, k_mean: float, path: Path, runs: int) -> None:
-    """Four panels against trials on the blocked layout, mean ± std over runs: the executed
-    return and the best policy mean's (each run too), the best and the average return of the
-    latest batch."""
-    fig, axes = plt.subplots(2, 2, figsize=(13, 8.4), sharey=True)
+    """Four panels against trials on the blocked layout, each curve's mean over runs with a
+    band from its 25 % to its 75 % quantile: the executed return and the best policy mean's
+    (each run too), the best and the average return of the latest batch. The y-axis spans
+    the data (within the return's range [0, 1]); the legend sits below the panels."""
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.8), sharey=True)
+    low, high = np.inf, -np.inf
     panels = (
         (4, "executed: the best parameters evaluated since the block"),
         (5, "the best policy mean (evaluation rollouts, not trials)"),
@@ -278,26 +292,30 @@ def plot(grid: np.ndarray, curves: dict, k_mean: float, path: Path, runs: int) -
             if column in (4, 5):
                 for one in series:
                     ax.step(grid, one, where="post", color=COLORS[algo], alpha=0.25, lw=0.7)
-            mean, std = np.nanmean(series, 0), np.nanstd(series, 0)
+            mean, (q25, q75) = np.nanmean(series, 0), quartiles(series)
             ax.plot(grid, mean, color=COLORS[algo], label=LABELS[algo], lw=1.8)
-            ax.fill_between(grid, mean - std, mean + std, color=COLORS[algo], alpha=0.15)
+            ax.fill_between(grid, q25, q75, color=COLORS[algo], alpha=0.15, lw=0)
+            low = min(low, np.nanmin(q25), np.nanmin(mean))
+            high = max(high, np.nanmax(q75))
         ax.axhline(0.9, color="black", lw=0.8, ls=":")
         ax.axvline(k_mean, color="tab:blue", lw=0.8, ls="--")
         ax.set_title(title, fontsize="medium")
         ax.grid(alpha=0.3)
-        ax.set_ylim(0.0, 1.02)
+        ax.set_xlim(grid[0], grid[-1])
+    axes[0, 0].set_ylim(*data_limits(low, high, (0.0, 1.0)))
     for ax in axes[1]:
         ax.set_xlabel("trials on the blocked layout (since the block)")
     for ax in axes[:, 0]:
-        ax.set_ylabel(f"return with the obstacle ({runs} runs)")
-    axes[0, 0].legend(loc="lower right", fontsize="small")
+        ax.set_ylabel(f"return with the obstacle (band: 25-75 % of {runs} runs)")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False)
     fig.suptitle(
         "Viapoint task: an obstacle blocks the learned route after 300 trials\n"
         f"(dashed: DIPOLE's re-evaluation of its stored policies, K = {k_mean:.1f} trials on "
         "average; dotted: return 0.9)"
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -413,6 +431,16 @@ def main() -> None:
             "best_std": json_list(np.nanstd(values[:, 1], 0)),
             "average_mean": json_list(np.nanmean(values[:, 2], 0)),
             "average_std": json_list(np.nanstd(values[:, 2], 0)),
+            **{
+                f"{name}_q{q}": json_list(band)
+                for column, name in (
+                    (4, "executed"),
+                    (5, "policy_mean"),
+                    (1, "best"),
+                    (2, "average"),
+                )
+                for q, band in zip((25, 75), quartiles(values[:, column]), strict=True)
+            },
             "per_run": [
                 {key: value for key, value in run.items() if key not in INTERNAL}
                 | {

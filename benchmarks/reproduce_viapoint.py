@@ -62,7 +62,9 @@ from lockstep import (  # noqa: E402
     load_task,
     on_grid,
     plot_best_and_average,
+    quartiles,
     run_in_lockstep,
+    save_figure,
 )
 
 from dipole_torch import Dipole, Power  # noqa: E402
@@ -174,9 +176,9 @@ def main() -> None:
         COLORS,
         args.out / "figure2_viapoint.png",
         task_title="Viapoint task",
-        ylabel=f"reward, eq. 9 (mean ± std, {args.runs} runs)",
+        ylabel=f"reward, eq. 9 (mean; band: 25-75 % of {args.runs} runs)",
         xlabel="trials (reward evaluations)",
-        ylim=(0.0, 1.02),
+        bounds=(0.0, 1.0),
     )
 
     summary: dict = {
@@ -211,6 +213,11 @@ def main() -> None:
             "best_std": np.nanstd(values[:, 0], 0).tolist(),
             "average_mean": np.nanmean(values[:, 1], 0).tolist(),
             "average_std": np.nanstd(values[:, 1], 0).tolist(),
+            **{
+                f"{kind}_q{q}": band.tolist()
+                for k, kind in enumerate(("best", "average"))
+                for q, band in zip((25, 75), quartiles(values[:, k]), strict=True)
+            },
             "final_best": [float(np.nanmean(values[:, 0, -1])), float(np.nanstd(values[:, 0, -1]))],
             "final_average": [
                 float(np.nanmean(values[:, 1, -1])),
@@ -269,7 +276,7 @@ def main() -> None:
             labels=labels,
             title=f"Viapoint task: {len(routes)} routes found by DIPOLE in {args.runs} runs",
         )
-        figure.savefig(args.out / "figure3_routes.png", dpi=120)
+        save_figure(figure, args.out / "figure3_routes.png")
         plt.close(figure)
     print(f"wrote {args.out}/figure2_viapoint.png, figure3_routes.png, viapoint.json")
     print(f"total {time.perf_counter() - start:.0f} s")
