@@ -11,6 +11,7 @@ from torch import Tensor
 from dipole_torch.validation import check_finite
 
 RewardRange = tuple[float, float] | str | None
+_LARGEST_WEIGHT = 1e150  # a positive return used as a weight: its square stays finite
 
 
 class RewardScale:
@@ -81,9 +82,16 @@ class RewardScale:
         if self.positive:
             if (rewards <= 0).any():
                 raise ValueError(
-                    "rewards must be positive with RewardScale(positive=True) (PoWER and eq. 6 "
-                    f"weight by them); got min {float(rewards.min()):g}. Give no reward_range "
-                    "to map any returns to [floor, 1] adaptively."
+                    "rewards must be positive with reward_range='positive' (Dipole.paper's "
+                    "default: PoWER and eq. 6 weight by them as they are); got min "
+                    f"{float(rewards.min()):g}. Pass reward_range=None to map any returns to "
+                    "[floor, 1] by their min-max, or a fixed (low, high)."
+                )
+            if (rewards > _LARGEST_WEIGHT).any():
+                raise ValueError(
+                    f"rewards used as weights (reward_range='positive') must be at most "
+                    f"{_LARGEST_WEIGHT:g}, whose squares the DP mixture's variances hold; got "
+                    f"max {float(rewards.max()):g}. Rescale them, or pass reward_range=None."
                 )
             return
         if self.low is None:
@@ -107,10 +115,13 @@ class RewardScale:
         if reference is None or reference.numel() == 0:
             raise ValueError("an adaptive RewardScale needs the reference returns")
         low, high = reference.min(), reference.max()
-        # A flat reference: every return is the best one (weight 1). The width is relative
-        # to the returns' magnitude so that any units work.
-        width = (high - low).clamp_min(torch.finfo(reference.dtype).tiny)
-        return high - width, high
+        # A flat reference: every return is the best one (weight 1), with a width relative to
+        # the returns' size, so that high - width is below high at any magnitude.
+        width = high - low
+        flat = (high.abs() * 2.0**-40).clamp_min(torch.finfo(reference.dtype).tiny)
+        width = torch.where(width > 0, width, flat)
+        # (A range too wide for a float, ±1.8e308 returns: its own ends; weights() halves.)
+        return torch.where(torch.isfinite(width), high - width, low), high
 
     def weights(self, rewards: Tensor, reference: Tensor | None = None) -> Tensor:
         """The map itself, for rewards already validated.
@@ -125,7 +136,11 @@ class RewardScale:
         low, high = self.range(rewards.reshape(-1) if reference is None else reference)
         if low.dtype != rewards.dtype or low.device != rewards.device:
             low, high = low.to(rewards), high.to(rewards)
-        return ((rewards - low) / (high - low)).clamp(self.floor, 1.0)
+        weights = (rewards - low) / (high - low)
+        # Returns near ±1.8e308 are finite, their range not: the same map on halves (exact).
+        halves = (0.5 * rewards - 0.5 * low) / (0.5 * high - 0.5 * low)
+        weights = torch.where(torch.isfinite(high - low), weights, halves)
+        return weights.clamp(self.floor, 1.0)
 
     def inverse(self, weights: Tensor, reference: Tensor | None = None) -> Tensor:
         """Returns corresponding to ``weights`` (the floor is not undone)."""
