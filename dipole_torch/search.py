@@ -8,6 +8,7 @@ optimizer never calls the task and needs no range of the returns.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -251,9 +252,15 @@ class PolicySearch:
             ``[n0, D]`` draws from N(θ0, Σ_start) on the first call; afterwards ``[B, D]``:
             one row per sampled policy, drawn from its Gaussian, then any exploration rows
             (see :attr:`asked_owner`). Asking again before telling discards the previous
-            proposal.
+            proposal, with a warning.
         """
         check_count(max_rows, "max_rows", optional=True)
+        if self._pending is not None:
+            warnings.warn(
+                "ask() again before tell(): the pending proposal is discarded (its draws are "
+                "spent); tell() each ask's returns to learn from them",
+                stacklevel=2,
+            )
         if not self.started:
             theta = draw_gaussian(self.theta0, self.sigma_start, (self.n0,), self.generator)
             owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
@@ -284,6 +291,20 @@ class PolicySearch:
     def _sampled_policies(self) -> Tensor:
         """``[K_sampled]`` the policies that draw a sample at the next ask: the active ones."""
         return self.active.nonzero().squeeze(-1)
+
+    def _check_asked(self, theta: Tensor) -> None:
+        """Raise ``ValueError`` naming the first told row that is not the asked one (compared
+        in the told dtype: an asked row cast to float32 and back is the same row)."""
+        theta = theta.detach()
+        asked = self._pending[: theta.shape[0]].to(device=theta.device, dtype=theta.dtype)
+        different = (asked != theta).any(-1)
+        if bool(different.any()):
+            row = int(different.nonzero()[0])
+            gap = float((asked[row] - theta[row]).abs().max())
+            raise ValueError(
+                f"theta row {row} is not the row asked (it differs by up to {gap:g}): tell() "
+                "takes the rows of the last ask as asked (a new point is asked, not told)"
+            )
 
     def _check_in_box(self, theta: Tensor) -> None:
         """Raise ``ValueError`` naming the first told row outside the box (compared in the
@@ -328,6 +349,7 @@ class PolicySearch:
             )
         check_finite(theta, "theta")
         self._check_in_box(theta)
+        self._check_asked(theta)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
         self.reward_scale.validate(rewards)  # before any state changes
         theta = self._into_box(theta.detach().to(device=self.device, dtype=DTYPE))
