@@ -22,6 +22,7 @@ with status 128 + the signal number; a bad value ends the run with one line and 
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -34,15 +35,17 @@ from omegaconf import DictConfig, OmegaConf
 from dipole_torch.training.config import register
 from dipole_torch.training.resume import register_resolvers
 
-register()  # the schemas configs/ extends, and --help
+register()  # the schemas configs/ extends
 register_resolvers()
 log = logging.getLogger("train")  # Hydra's job logging: stdout and the run's train.log
 OUTPUTS = ("checkpoint.pt", "results.json", "policies.pt")  # each written atomically
 
 
-@hydra.main(version_base=None, config_path=str(Path(__file__).parent / "configs"),
-            config_name="config")  # fmt: skip
-def main(cfg: DictConfig) -> dict:
+CONFIGS = str(Path(__file__).parent / "configs")
+
+
+@hydra.main(version_base=None, config_path=CONFIGS, config_name="config")
+def train(cfg: DictConfig) -> dict:
     from dipole_torch.checkpoint import CheckpointError
     from dipole_torch.training import board, checks, console, resume, run_directory
     from dipole_torch.training.block import block_the_route
@@ -172,6 +175,16 @@ def main(cfg: DictConfig) -> dict:
         writer.close()
     log.info("\n" + console.summary(cfg.algo.name, cfg.task.name, results, out))
     return results
+
+
+def main():
+    """The command: ``--help`` lists every setting (dipole_torch.training.config), the rest is
+    Hydra's (overrides, ``-m`` sweeps, ``--hydra-help``)."""
+    if "--help" in sys.argv[1:] or "-h" in sys.argv[1:]:
+        from dipole_torch.training.config import print_help
+
+        return print_help(sys.argv[1:], CONFIGS)
+    return train()
 
 
 if __name__ == "__main__":

@@ -68,9 +68,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from xml.etree import ElementTree
 
-import pytorch_kinematics as pk
 import torch
-from pytorch_kinematics.urdf_parser_py.xml_reflection import core as urdf_reflection
 from torch import Tensor
 
 # The repository root; in a wheel, the installed dipole_torch/ folder, which holds models/ there
@@ -279,6 +277,8 @@ def _urdf_messages_as_warnings(path: Path) -> Iterator[None]:
     """pytorch-kinematics' URDF parser writes what it skips ('Unknown tag ...') to stderr;
     within this block each message is a ``UserWarning`` naming ``path`` instead."""
 
+    from pytorch_kinematics.urdf_parser_py.xml_reflection import core as urdf_reflection
+
     def warn(message: str) -> None:
         warnings.warn(f"urdf {path}: {message}", stacklevel=2)
 
@@ -373,6 +373,11 @@ class ArmKinematics:
                 )
         self.base_link = root
         self.end_effector = end_effector
+        # Imported here: pytorch-kinematics (with matplotlib and scipy) takes longer to import
+        # than a run of train.py needs before its first ask, and --help needs none of it.
+        import pytorch_kinematics as pk
+        from pytorch_kinematics.urdf_parser_py.xml_reflection import core as urdf_reflection
+
         try:
             with _urdf_messages_as_warnings(self.urdf_path):
                 full_chain = pk.build_chain_from_urdf(tree.kinematic_copy())

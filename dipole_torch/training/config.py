@@ -158,9 +158,8 @@ ALGOS: dict[str, type] = {}
 
 
 def register(store: ConfigStore | None = None) -> None:
-    """Put the schemas and the help page into Hydra's ConfigStore (idempotent): top-level
-    names ``dipole_torch_config``, ``dipole_torch_task[_<name>]``, ``dipole_torch_algo_<name>``
-    and the ``hydra/help`` page ``dipole``."""
+    """Put the schemas into Hydra's ConfigStore (idempotent): top-level names
+    ``dipole_torch_config``, ``dipole_torch_task[_<name>]`` and ``dipole_torch_algo_<name>``."""
     store = store or ConfigStore.instance()
     if not TASKS:
         TASKS.update(task_schemas())
@@ -171,19 +170,6 @@ def register(store: ConfigStore | None = None) -> None:
         store.store(name=f"dipole_torch_task_{name}", node=schema)
     for name, schema in ALGOS.items():
         store.store(name=f"dipole_torch_algo_{name}", node=schema)
-    text = help_text()
-    # Hydra fills the page in with string.Template and OmegaConf resolves it: no other "$".
-    assert text.count("$") == text.count("$CONFIG")
-    store.store(
-        group="hydra/help",
-        name="dipole",
-        node={
-            "app_name": _program(),
-            "header": f"{_program()}: DIPOLE (Bruno et al., AAAI 2013) and PoWER in PyTorch",
-            "footer": "",
-            "template": "${hydra.help.header}\n\n" + text,
-        },
-    )
 
 
 # ------------------------------------------------------------------ --help
@@ -251,9 +237,9 @@ def _choices(group: str) -> str:
     return ", ".join(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml")))
 
 
-def help_text() -> str:
-    """The ``--help`` page: the choices, then every field with its type, default and help.
-    ``$CONFIG`` is filled in by Hydra."""
+def help_text(config: str) -> str:
+    """The ``--help`` page: the choices, then every field with its type, default and help,
+    then ``config`` (this run's config, as YAML)."""
     program = _program()
     lines = [
         f"{program} [task=<task>] [algo=<algo>] [key=value ...]",
@@ -285,7 +271,21 @@ def help_text() -> str:
     lines += [
         "",
         "== This run's config (with the overrides given) ==",
-        "$CONFIG",
+        config,
         f"Hydra's own options: {program} --hydra-help",
     ]
     return "\n".join(lines)
+
+
+def print_help(argv: list[str], config_dir: str) -> None:
+    """Answer ``--help`` with :func:`help_text` and the config the other arguments compose
+    (one compose; Hydra's own ``--help`` composes the config once per config group)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    overrides = [a for a in argv if a not in ("--help", "-h") and not a.startswith("-")]
+    register()
+    with initialize_config_dir(config_dir, version_base=None):
+        cfg = compose("config", overrides=overrides)
+    header = f"{_program()}: DIPOLE (Bruno et al., AAAI 2013) and PoWER in PyTorch"
+    print(header + "\n\n" + help_text(OmegaConf.to_yaml(cfg)))
