@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import Tensor
 
@@ -9,7 +11,6 @@ from dipole_torch.dp.conditionals import posterior_point_estimate
 from dipole_torch.dp.sampler import DPSampler
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
-from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.inputs import Bounds
 from dipole_torch.mechanisms.exploration import make_exploration
 from dipole_torch.mechanisms.hill_valley import PROBE, make_vetting
@@ -20,6 +21,9 @@ from dipole_torch.options import DipoleOptions
 from dipole_torch.power import make_importance
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.search import PolicySearch, TellBatch
+
+if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
+    from dipole_torch.gaussian_mixture import GaussianMixture
 
 __all__ = ["Dipole"]
 
@@ -291,6 +295,8 @@ class Dipole(PolicySearch):
             weights = self.archive.counts(self.num_policies).to(DTYPE).clamp_min(1.0)
         else:
             weights = self.dp_state.counts.to(DTYPE).clamp_min(1.0)
+        from dipole_torch.gaussian_mixture import GaussianMixture
+
         return GaussianMixture(weights, means, covs, validate_args=False)
 
     @property

@@ -10,13 +10,13 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from dipole_torch.archive import NO_POLICY, PROBE, SampleArchive
 from dipole_torch.gaussian import DTYPE
-from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.inputs import Bounds, as_covariance, as_theta0, make_box
 from dipole_torch.policy_set import PolicySet
 from dipole_torch.result import SearchResult
@@ -28,6 +28,9 @@ from dipole_torch.validation import (
     check_generator,
     check_matrix_shape,
 )
+
+if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
+    from dipole_torch.gaussian_mixture import GaussianMixture
 
 __all__ = ["NO_POLICY", "PROBE", "PolicySearch", "TellBatch"]
 
@@ -190,6 +193,8 @@ class PolicySearch:
         The covariances are factorised in float64 before the cast: a converged policy's
         exploration can be too ill-conditioned for a float32 Cholesky."""
         weights = self.archive.counts(self.num_policies).to(DTYPE).clamp_min(1.0)
+        from dipole_torch.gaussian_mixture import GaussianMixture
+
         mixture = GaussianMixture(
             weights, self.policy_means, self.policy_covariances, validate_args=False
         )

@@ -1,7 +1,8 @@
 """The library's dependencies go one way: nothing under dipole_torch but its training
 application (dipole_torch.training, and the configs that register its schemas) imports
 Hydra, TensorBoard, the tasks or the models; ``import dipole_torch`` leaves its MCMC kernel
-and Pyro model to their first use."""
+, Pyro model and Gaussian mixture (Pyro's) to their first use: an optimizer's iterations do
+not import Pyro."""
 
 import json
 import subprocess
@@ -11,7 +12,8 @@ CHECK = """
 import json, pkgutil, sys
 import dipole_torch
 app = ("dipole_torch.training", "dipole_torch.configs")
-after_init = sorted(m for m in ("dipole_torch.mcmc", "dipole_torch.pyro_model") if m in sys.modules)
+lazy = ("dipole_torch.mcmc", "dipole_torch.pyro_model", "dipole_torch.gaussian_mixture", "pyro")
+after_init = sorted(m for m in lazy if m in sys.modules)
 core = []
 
 def walk(path, prefix):  # (pkgutil.walk_packages would import the application's packages)
@@ -43,3 +45,32 @@ def test_the_library_core_imports_no_application():
     )
     assert report["imported"] == [], report["imported"]
     assert report["pyro_at_import"] == []  # they come with the first of their names used
+
+
+ITERATIONS = """
+import json, sys, torch
+import dipole_torch
+opt = dipole_torch.Dipole([0.0, 0.0], 0.5, generator=torch.Generator().manual_seed(0))
+while not opt.stop(max_trials=200):
+    theta = opt.ask()
+    opt.tell(theta, -(theta**2).sum(-1))
+during = "pyro" in sys.modules
+mixture = opt.mixture  # the first use of GaussianMixture imports it, and Pyro
+same = type(mixture) is dipole_torch.GaussianMixture
+print(json.dumps({"pyro_during": during, "pyro_after": "pyro" in sys.modules,
+                  "mixture": type(mixture).__name__, "same": same}))
+"""
+
+
+def test_iterations_do_not_import_pyro_until_a_mixture_is_built():
+    result = subprocess.run(
+        [sys.executable, "-c", ITERATIONS], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert report == {
+        "pyro_during": False,
+        "pyro_after": True,
+        "mixture": "GaussianMixture",
+        "same": True,
+    }

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import Tensor
 
 from dipole_torch.gaussian import log_prob_tril
-from dipole_torch.gaussian_mixture import GaussianMixture
+
+if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
+    from dipole_torch.gaussian_mixture import GaussianMixture
 
 __all__ = ["RewardRegression", "reward_weights"]
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -11,9 +12,11 @@ from torch import Tensor
 
 from dipole_torch.dp.conditionals import data_mean, posterior_point_estimate, residual_sums
 from dipole_torch.gaussian import DTYPE, LOG_2PI, gaussian_log_prob
-from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.sampling import draw_categorical_numpy, uniforms
+
+if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
+    from dipole_torch.gaussian_mixture import GaussianMixture
 
 __all__ = ["DPMixtureState", "sequential_labels"]
 
@@ -45,6 +48,8 @@ class DPMixtureState:
 
     def mixture(self) -> GaussianMixture:
         """The fitted mixture, with weights proportional to the component sizes."""
+        from dipole_torch.gaussian_mixture import GaussianMixture
+
         return GaussianMixture(
             self.counts.to(self.means.dtype), self.means, self.covariances, validate_args=False
         )

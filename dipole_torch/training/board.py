@@ -25,8 +25,6 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torch.utils.tensorboard import SummaryWriter
-from torch.utils.tensorboard.summary import hparams
 
 from dipole_torch.training.resume import flatten
 
@@ -54,11 +52,22 @@ class Board:
     """
 
     def __init__(self, directory: Path, cfg: DictConfig, purge_step: int | None = None):
-        self.writer = SummaryWriter(str(directory), purge_step=purge_step)
-        if purge_step is None:
-            self.writer.add_custom_scalars(LAYOUT)
-            config = OmegaConf.to_yaml(cfg, resolve=True)
-            self.writer.add_text("config", f"```yaml\n{config}\n```")
+        self.directory, self.purge_step = directory, purge_step
+        self.config = OmegaConf.to_yaml(cfg, resolve=True)
+        self._writer = None
+
+    @property
+    def writer(self):
+        """The ``SummaryWriter``, opened at the first write: TensorBoard's import is not part
+        of a run's start-up (``benchmarks/bench_startup.py``)."""
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.directory), purge_step=self.purge_step)
+            if self.purge_step is None:
+                self._writer.add_custom_scalars(LAYOUT)
+                self._writer.add_text("config", f"```yaml\n{self.config}\n```")
+        return self._writer
 
     def log_iteration(self, optimizer) -> dict[str, float]:
         """Write this iteration's scalars; return them for the history."""
@@ -101,12 +110,14 @@ class Board:
             key: value if isinstance(value, bool | int | float | str) else json.dumps(value)
             for key, value in config.items()
         }
+        from torch.utils.tensorboard.summary import hparams
+
         metrics = {"reward/best_so_far": best_reward, "search/policies": num_policies}
         for summary in hparams(values, metrics):
             self.writer.file_writer.add_summary(summary)
 
     def close(self) -> None:
-        self.writer.close()
+        self.writer.close()  # opened here if nothing was written: a run always has its log
 
 
 def policy_figure(task, optimizer, title: str | None = None):
