@@ -229,13 +229,7 @@ class Dipole(PolicySearch):
             df=self.prior_df,
             regularization=self.options.regularization,
         )
-        self.sampler = DPSampler(
-            prior,
-            alpha=self.options.alpha,
-            m=self.options.m,
-            reward_weighted=self.options.reward_weighted,
-            auxiliary=self.auxiliary,
-        )
+        self.sampler = self._sampler(prior)
         try:
             state = self._fit(y, self.options.initial_sweeps)
         except torch.linalg.LinAlgError:
@@ -304,6 +298,16 @@ class Dipole(PolicySearch):
         """``[K]`` the return the mixture predicts at each policy's mean (r_c of eq. 6)."""
         return self.mixture.condition(range(self.dim), self.policy_means).mean[..., 0]
 
+    def _sampler(self, prior: NormalInverseWishartPrior) -> DPSampler:
+        """The DP mixture's sampler (Algorithm 3) with the options' α, m and eq. 6 switch."""
+        return DPSampler(
+            prior,
+            alpha=self.options.alpha,
+            m=self.options.m,
+            reward_weighted=self.options.reward_weighted,
+            auxiliary=self.auxiliary,
+        )
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
         return {
@@ -314,8 +318,8 @@ class Dipole(PolicySearch):
             "clusterings_skipped": self.clusterings_skipped,
         }
 
-    def load_state_dict(self, state: dict) -> None:
-        super().load_state_dict(state)
+    def _load_state_dict(self, state: dict) -> None:
+        super()._load_state_dict(state)
         try:
             self.vetting.load_state_dict(state, self.device)
             prior, dp = (
@@ -331,13 +335,7 @@ class Dipole(PolicySearch):
                     f"state_dict['initial_prior'] is over {prior.dim} dimensions, not D + 1 = "
                     f"{self.dim + 1}"
                 )
-            self.sampler = DPSampler(
-                prior,
-                alpha=self.options.alpha,
-                m=self.options.m,
-                reward_weighted=self.options.reward_weighted,
-                auxiliary=self.auxiliary,
-            )
+            self.sampler = self._sampler(prior)
         self.dp_state = None if dp is None else DPMixtureState.from_state_dict(dp)
         self.clusterings_skipped = int(state.get("clusterings_skipped", 0))
 

@@ -12,6 +12,7 @@ from dipole_torch.validation import check_finite
 
 RewardRange = tuple[float, float] | str | None
 _LARGEST_WEIGHT = 1e150  # a positive return used as a weight: its square stays finite
+_SMALLEST_FIRST_WEIGHT = 1e-150  # the first batch's largest weight: its square is not 0
 
 
 class RewardScale:
@@ -53,7 +54,7 @@ class RewardScale:
             raise ValueError("reward_range needs both low and high, or neither")
         if low is not None:
             low, high = float(low), float(high)
-            if not (torch.isfinite(torch.tensor([low, high])).all() and high > low):
+            if not (math.isfinite(low) and math.isfinite(high) and high > low):
                 raise ValueError(
                     f"reward_range must be finite with high > low, got ({low}, {high})"
                 )
@@ -76,8 +77,9 @@ class RewardScale:
         self.validate(rewards)
         return self.weights(rewards, reference)
 
-    def validate(self, rewards: Tensor) -> None:
-        """Raise ``ValueError`` on non-finite rewards, or rewards this scale cannot map."""
+    def validate(self, rewards: Tensor, first: bool = False) -> None:
+        """Raise ``ValueError`` on non-finite rewards, or rewards this scale cannot map;
+        ``first``: they are the run's first batch."""
         check_finite(rewards, "rewards")
         if self.positive:
             if (rewards <= 0).any():
@@ -93,10 +95,18 @@ class RewardScale:
                     f"{_LARGEST_WEIGHT:g}, whose squares the DP mixture's variances hold; got "
                     f"max {float(rewards.max()):g}. Rescale them, or pass reward_range=None."
                 )
+            if first and float(rewards.max()) < _SMALLEST_FIRST_WEIGHT:
+                # The prior's reward variance is set by the first batch's scale.
+                raise ValueError(
+                    f"the first batch's rewards used as weights (reward_range='positive') "
+                    f"must reach {_SMALLEST_FIRST_WEIGHT:g}, whose square the DP mixture's "
+                    f"variances hold; got max {float(rewards.max()):g}. Rescale them, or pass "
+                    "reward_range=None."
+                )
             return
         if self.low is None:
             return
-        slack = 1e-9 * (self.high - self.low)
+        slack = 1e-9 * self.high - 1e-9 * self.low  # (high - low overflows beyond ±9e307)
         if (rewards < self.low - slack).any() or (rewards > self.high + slack).any():
             raise ValueError(
                 f"rewards outside reward_range ({self.low:g}, {self.high:g}): "

@@ -356,7 +356,7 @@ class PolicySearch:
         self._check_in_box(theta)
         self._check_asked(theta)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
-        self.reward_scale.validate(rewards)  # before any state changes
+        self.reward_scale.validate(rewards, first=not self.started)  # before any change
         theta = self._into_box(theta.detach().to(device=self.device, dtype=DTYPE))
         snapshot = self.state_dict()
         try:
@@ -366,7 +366,7 @@ class PolicySearch:
                 # posterior means of the paper's DIPOLE weigh them by matrices.
                 self.policy_set.means = self._into_box(self.policy_means)
         except BaseException:
-            self.load_state_dict(snapshot)
+            self._load_state_dict(snapshot)
             raise
 
     def _tell(self, theta: Tensor, rewards: Tensor) -> None:
@@ -440,7 +440,7 @@ class PolicySearch:
         try:
             self._reevaluate(returns.to(DTYPE))
         except BaseException:
-            self.load_state_dict(snapshot)
+            self._load_state_dict(snapshot)
             raise
 
     def _reevaluate(self, returns: Tensor) -> None:
@@ -493,13 +493,23 @@ class PolicySearch:
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from ``state`` (of :meth:`state_dict`); raises ``ValueError`` naming what
-        does not fit this optimizer (another kind, another dimension, a missing key)."""
+        does not fit this optimizer (another kind, another dimension, a missing key), and
+        then the optimizer is as it was before the call."""
         if not isinstance(state, dict):
             raise ValueError(f"state_dict must be a dict, got {type(state).__name__}")
         if state.get("kind") != type(self).__name__:
             raise ValueError(
                 f"state_dict is from a {state.get('kind')}, not a {type(self).__name__}"
             )
+        snapshot = self.state_dict()
+        try:
+            self._load_state_dict(state)
+        except BaseException:
+            self._load_state_dict(snapshot)  # a refused state leaves no part of it behind
+            raise
+
+    def _load_state_dict(self, state: dict) -> None:
+        """Load ``state`` part by part (a subclass loads its own parts after these)."""
         try:
             self.archive.load_state_dict(state, self.device)
             self.policy_set.load_state_dict(state, self.device)
