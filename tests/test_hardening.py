@@ -211,6 +211,24 @@ def test_bad_rewards_are_refused_naming_them_and_change_nothing(kind):
     assert opt.trials == theta.shape[0]
 
 
+@pytest.mark.xfail(
+    strict=True,
+    raises=RuntimeError,
+    reason="PolicySearch.tell (dipole_torch/search.py:355) runs check_finite on a meta θ, "
+    "whose isfinite().any() has no value: RuntimeError 'Tensor.item() cannot be called on "
+    "meta tensors', naming no argument (a meta theta0, sigma_start or rewards is refused "
+    "by name)",
+)
+@pytest.mark.parametrize("kind", ["dipole", "paper", "power"])
+def test_a_told_meta_theta_is_refused_naming_it(kind):
+    opt = build(kind, reward_range=(-10.0, 2.0))
+    theta = opt.ask()
+    before = opt.state_dict()
+    with pytest.raises(ValueError, match="theta is a meta tensor"):
+        opt.tell(torch.empty_like(theta, device="meta"), quadratic(theta))
+    assert same_state(opt.state_dict(), before)
+
+
 @pytest.mark.parametrize("kind", ["dipole", "paper", "power"])
 def test_a_row_that_was_not_asked_is_refused_and_changes_nothing(kind):
     opt = build(kind, reward_range=(-10.0, 2.0))
