@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -11,7 +11,7 @@ from dipole_torch.dp.conditionals import posterior_point_estimate
 from dipole_torch.dp.sampler import DPSampler
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
-from dipole_torch.inputs import Bounds
+from dipole_torch.inputs import Bounds, SigmaStart, Theta0
 from dipole_torch.mechanisms.exploration import make_exploration
 from dipole_torch.mechanisms.hill_valley import PROBE, make_vetting
 from dipole_torch.mechanisms.matching import OverlapMatching, ReplaceMatching, adopt_components
@@ -84,13 +84,13 @@ class Dipole(PolicySearch):
 
     def __init__(
         self,
-        theta0,
-        sigma_start,
+        theta0: Theta0,
+        sigma_start: SigmaStart,
         options: DipoleOptions | None = None,
         *,
         generator: torch.Generator | None = None,
         bounds: Bounds = None,
-        **changes,
+        **changes: Any,
     ):
         options = (options or DipoleOptions()).replace(**changes)
         n0 = 2 * options.M if options.n0 is None else options.n0
@@ -133,7 +133,7 @@ class Dipole(PolicySearch):
         self.dp_state: DPMixtureState | None = None
 
     @classmethod
-    def paper(cls, theta0, sigma_start, **changes) -> Dipole:
+    def paper(cls, theta0: Theta0, sigma_start: SigmaStart, **changes: Any) -> Dipole:
         """DIPOLE exactly as in the paper (:meth:`DipoleOptions.paper`), then ``changes``."""
         generator, bounds = changes.pop("generator", None), changes.pop("bounds", None)
         return cls(theta0, sigma_start, DipoleOptions.paper(**changes),

@@ -16,9 +16,13 @@ from dipole_torch.validation import (
     check_real_tensor,
 )
 
-__all__ = ["Bounds", "as_covariance", "as_theta0", "make_box"]
+__all__ = ["Bounds", "SigmaStart", "Theta0", "as_covariance", "as_theta0", "make_box"]
 
 Bounds = tuple[float | list[float] | Tensor, float | list[float] | Tensor] | None
+# θ0: a [D] tensor, list or numpy array.
+Theta0 = Tensor | list[float] | np.ndarray
+# Σ_start: one std (a number), [D] stds or a [D, D] covariance (tensor, list or numpy array).
+SigmaStart = float | Tensor | list[float] | list[list[float]] | np.ndarray
 
 
 def as_theta0(theta0) -> Tensor:

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from dipole_torch.inputs import Bounds
+from dipole_torch.inputs import Bounds, SigmaStart, Theta0
 from dipole_torch.power import GlobalImportance, importance_sets
 from dipole_torch.reward import RewardRange
 from dipole_torch.search import PolicySearch
@@ -53,8 +53,8 @@ class Power(PolicySearch):
 
     def __init__(
         self,
-        theta0,
-        sigma_start,
+        theta0: Theta0,
+        sigma_start: SigmaStart,
         M: int = 5,
         n0: int | None = None,
         reward_range: RewardRange = None,

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from dipole_torch.archive import NO_POLICY, PROBE, SampleArchive
 from dipole_torch.gaussian import DTYPE
-from dipole_torch.inputs import Bounds, as_covariance, as_theta0, make_box
+from dipole_torch.inputs import Bounds, SigmaStart, Theta0, as_covariance, as_theta0, make_box
 from dipole_torch.policy_set import PolicySet
 from dipole_torch.result import SearchResult
 from dipole_torch.reward import RewardRange, check_rewards, make_reward_scale
@@ -89,8 +89,8 @@ class PolicySearch:
 
     def __init__(
         self,
-        theta0,
-        sigma_start,
+        theta0: Theta0,
+        sigma_start: SigmaStart,
         M: int,
         n0: int,
         reward_range: RewardRange,

@@ -236,7 +236,9 @@ class CartPoleTask(ControlTask):
         angle_dot.add_(angle_acc, alpha=self.tau)
 
     def policy(self, theta: Tensor, state: Tensor) -> Tensor:
-        """Eq. 8, ``u = θᵀx`` clipped to ``±force_limit``: ``[B, 4], [B, 4] -> [B]``."""
+        """Eq. 8, ``u = θᵀx`` clipped to ``±force_limit``: ``[B, 4], [B, 4] -> [B]``. The
+        one-step form (a gymnasium policy, the tests); :meth:`evaluate` computes the same
+        in place, fused with the dynamics."""
         return (theta * state).sum(-1).clamp(-self.force_limit, self.force_limit)
 
     def failed(self, state: Tensor) -> Tensor:

@@ -201,7 +201,9 @@ class MountainCarTask(ControlTask):
         return torch.stack((x, x * x, x_velocity, x_velocity * velocity), dim=-1)
 
     def policy(self, theta: Tensor, state: Tensor) -> Tensor:
-        """``u = 4 · sign(θᵀφ(x))`` with ``sign(0) = +``: ``[B, 4], [B, 2] -> [B]``."""
+        """``u = 4 · sign(θᵀφ(x))`` with ``sign(0) = +``: ``[B, 4], [B, 2] -> [B]``. The
+        one-step form (the tests); :meth:`evaluate` computes the same in place, fused with
+        the dynamics."""
         activation = (theta * self.features(state)).sum(-1)
         return torch.where(activation >= 0, self.force, -self.force).to(state.dtype)
 

@@ -46,7 +46,7 @@ URDF = """<?xml version="1.0"?>
 </robot>
 """
 
-# The task config for this arm, as a user writes it (README, "Use your own arm"): only keys of
+# The task config for this arm, as a user writes it (docs/guide/urdf.md): only keys of
 # configs/task/viapoint.yaml, no code. Start and target 50 cm apart at shoulder height, 55 cm
 # in front of the base; two alternatives 20 cm apart (below / above) at 0.5 s, one viapoint
 # at 1.3 s.

@@ -6,9 +6,10 @@ TensorBoard's Time Series tab opens on the returns:
 
 * ``reward/best``, ``reward/mean``: the best and mean of each policy's latest return
   (``last_rewards``); ``reward/best_so_far``: the best return evaluated so far;
-* ``search/policies``: the number of policies; ``search/log10_exploration_std``: the mean
-  exploration std of the active policies relative to Σ_start's, in log10 (it shrinks
-  geometrically as they converge); ``search/rewards``: histogram of the policies' returns;
+* ``search/policies``: the number of policies; ``search/log10_exploration_std``: log10 of
+  the mean, over the active policies, of each one's largest per-axis exploration std
+  relative to Σ_start's (``relative_std``; it shrinks geometrically as they converge);
+  ``search/rewards``: histogram of the policies' returns;
   ``search/figure``: the task's policy figure, where it has one;
 * ``world/before``, ``world/after``, ``world/block``: the block experiment (viapoint_blocked).
 
