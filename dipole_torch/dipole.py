@@ -27,6 +27,10 @@ if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is bui
 
 __all__ = ["Dipole"]
 
+# A clustering that meets these is skipped: a factorisation of a numerically singular
+# covariance, or a label whose every probability underflowed to 0.
+NUMERICAL_FAILURES = (torch.linalg.LinAlgError, FloatingPointError)
+
 # auxiliary="auto" re-uses auxiliary draws from this dimension p = D + 1 of [θ, r] on, where
 # Algorithm 8's N·m inverse-Wishart draws of p × p are most of a clustering.
 REUSE_AUXILIARY_DIM = 32
@@ -232,7 +236,7 @@ class Dipole(PolicySearch):
         self.sampler = self._sampler(prior)
         try:
             state = self._fit(y, self.options.initial_sweeps)
-        except torch.linalg.LinAlgError:
+        except NUMERICAL_FAILURES:
             # See _cluster: start from Algorithm 1's single component instead.
             self.clusterings_skipped += 1
             state = posterior_point_estimate(y, DPMixtureState.single_component(y, prior))
@@ -247,7 +251,7 @@ class Dipole(PolicySearch):
         y = self._augmented(rows)
         try:
             state = self._fit(y, self.options.sweeps, self.matching.warm_start(self, y, rows))
-        except torch.linalg.LinAlgError:
+        except NUMERICAL_FAILURES:
             # Converged policies' samples can make a component's covariance numerically
             # singular in float64. A run that goes well must not stop: skip this clustering
             # (the policies go on with their own exploration) and forget the scouts.

@@ -37,7 +37,6 @@ def as_theta0(theta0) -> Tensor:
         theta0 = torch.from_numpy(np.array(theta0, dtype=floating))
     check_real_tensor(theta0, "theta0")
     check_matrix_shape(theta0, (-1,), "theta0")
-    _check_materialised(theta0, "theta0")
     check_finite(theta0, "theta0")
     if theta0.shape[0] < 1:
         raise ValueError("theta0 must have at least one parameter, got shape [0]")
@@ -61,7 +60,6 @@ def as_covariance(sigma_start, theta0: Tensor) -> Tensor:
                 f"{sigma_start!r}"
             ) from None
     check_real_tensor(sigma_start, "sigma_start")
-    _check_materialised(sigma_start, "sigma_start")
     check_finite(sigma_start, "sigma_start")
     sigma = sigma_start.detach().to(device=theta0.device, dtype=DTYPE)
     if sigma.dim() < 2:
@@ -129,9 +127,3 @@ def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
 
 def _is_number(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
-
-
-def _check_materialised(tensor: Tensor, name: str) -> None:
-    """Refuse a meta tensor (shape only, no values) naming the argument."""
-    if tensor.device.type == "meta":
-        raise ValueError(f"{name} is a meta tensor (no values): give it on a real device")

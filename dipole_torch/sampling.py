@@ -197,7 +197,12 @@ def draw_categorical_numpy(logits: np.ndarray, uniform: float) -> int:
     Returns:
         The label in ``[0, C)``.
     """
-    cdf = np.exp(logits - logits.max()).cumsum()
+    top = logits.max()
+    if not top > -math.inf:  # every label impossible (or NaN): no distribution to draw from
+        raise FloatingPointError(
+            "every label has probability 0 (its log-likelihood under each component overflowed)"
+        )
+    cdf = np.exp(logits - top).cumsum()
     total = float(cdf[-1])
     value = min(uniform * total, math.nextafter(total, 0.0))  # see draw_categorical
     return min(int(cdf.searchsorted(value, side="right")), len(cdf) - 1)

@@ -37,8 +37,11 @@ def check_matrix_shape(tensor: Tensor, shape: tuple[int, ...], name: str) -> Non
 
 
 def check_finite(tensor: Tensor, name: str) -> None:
-    """Raise ``ValueError`` if ``tensor`` holds NaN or inf, naming the first bad index, or is
-    complex (casting to a real dtype would silently drop the imaginary part)."""
+    """Raise ``ValueError`` if ``tensor`` holds NaN or inf, naming the first bad index, is
+    complex (casting to a real dtype would silently drop the imaginary part) or is a meta
+    tensor (a shape without values)."""
+    if tensor.device.type == "meta":
+        raise ValueError(f"{name} is a meta tensor (no values): give it on a real device")
     if tensor.is_complex():
         raise ValueError(f"{name} must be real numbers, got dtype {tensor.dtype}")
     bad = ~torch.isfinite(tensor)
