@@ -101,7 +101,7 @@ def valid_rewards(data, accepted, theta: Tensor, first: bool = False) -> Tensor:
         # Weights in (0, 1e150], the first batch's largest at least 1e-150 (their squares
         # are the DP mixture's variances).
         if mode == "function":
-            scale = data.draw(st.sampled_from([1.0, 1e-9, 1e9, 1e100, 1e-150]))
+            scale = data.draw(st.sampled_from([1.0, 1e-9, 1e9, 1e100, 3e-150]))
             return scale * (1.5 + shape)
         if mode == "flat":
             smallest = [1e-150] if first else [1e-150, 1e-300, 5e-324]
