@@ -27,6 +27,7 @@ from dipole_torch.validation import (
     check_finite,
     check_generator,
     check_matrix_shape,
+    check_real_tensor,
 )
 
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
@@ -347,6 +348,7 @@ class PolicySearch:
             raise RuntimeError("tell() called without a preceding ask()")
         asked, d = self._pending.shape
         check_matrix_shape(theta, (-1, d), "theta")
+        check_real_tensor(theta, "theta")  # an integer θ equals the asked rows cast to it
         if not 1 <= theta.shape[0] <= asked:
             raise ValueError(
                 f"theta has {theta.shape[0]} rows: tell() takes the {asked} rows of the last "

@@ -409,13 +409,6 @@ def test_any_sequence_of_calls_works_or_is_refused_cleanly(name, data):
 
 
 # ---------------------------------------------------------------------- told θ's dtype
-@pytest.mark.xfail(
-    strict=True,
-    reason="PolicySearch.tell (dipole_torch/search.py:349-357, _check_asked at 304-305) "
-    "checks θ's shape and values but not its dtype, and compares the asked rows cast to "
-    "the told dtype: an integer or bool θ equals the asked rows so cast, is accepted, and "
-    "its truncated rows (bool: all 1.0) are archived as the policies' samples",
-)
 @pytest.mark.parametrize("name", ["dipole", "paper", "power"])
 @pytest.mark.parametrize("cast", [torch.long, torch.int8, torch.bool])
 def test_a_told_theta_of_integers_or_bools_is_refused(name, cast):
