@@ -183,7 +183,7 @@ def bad_theta(data, asked: Tensor):
     """A θ that must be refused in place of the rows ``asked [n, D]`` (well-formed rewards)."""
     n, d = asked.shape
     kinds = ["1-d", "3-d", "no rows", "extra row", "wrong D", "nan", "inf", "list", "numpy"]
-    kinds += ["complex", "meta", "not asked"]
+    kinds += ["complex", "meta", "integers", "bools", "not asked"]
     kind = data.draw(st.sampled_from(kinds), label="bad theta")
     if kind == "1-d":
         return asked[0], 1
@@ -210,6 +210,8 @@ def bad_theta(data, asked: Tensor):
         return asked.to(torch.complex128), n
     if kind == "meta":
         return torch.empty_like(asked, device="meta"), n
+    if kind in ("integers", "bools"):
+        return asked.to(torch.long if kind == "integers" else torch.bool), n
     moved = asked.clone()
     row, axis = data.draw(st.integers(0, n - 1)), data.draw(st.integers(0, d - 1))
     moved[row, axis] += 1e-2 * (1.0 + abs(float(moved[row, axis])))
