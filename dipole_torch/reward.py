@@ -77,28 +77,28 @@ class RewardScale:
         self.validate(rewards)
         return self.weights(rewards, reference)
 
-    def validate(self, rewards: Tensor, first: bool = False) -> None:
+    def validate(self, rewards: Tensor, first: bool = False, name: str = "rewards") -> None:
         """Raise ``ValueError`` on non-finite rewards, or rewards this scale cannot map;
-        ``first``: they are the run's first batch."""
-        check_finite(rewards, "rewards")
+        ``first``: they are the run's first batch; ``name``: the argument to name."""
+        check_finite(rewards, name)
         if self.positive:
             if (rewards <= 0).any():
                 raise ValueError(
-                    "rewards must be positive with reward_range='positive' (Dipole.paper's "
+                    f"{name} must be positive with reward_range='positive' (Dipole.paper's "
                     "default: PoWER and eq. 6 weight by them as they are); got min "
                     f"{float(rewards.min()):g}. Pass reward_range=None to map any returns to "
                     "[floor, 1] by their min-max, or a fixed (low, high)."
                 )
             if (rewards > _LARGEST_WEIGHT).any():
                 raise ValueError(
-                    f"rewards used as weights (reward_range='positive') must be at most "
+                    f"{name} used as weights (reward_range='positive') must be at most "
                     f"{_LARGEST_WEIGHT:g}, whose squares the DP mixture's variances hold; got "
                     f"max {float(rewards.max()):g}. Rescale them, or pass reward_range=None."
                 )
             if first and float(rewards.max()) < _SMALLEST_FIRST_WEIGHT:
                 # The prior's reward variance is set by the first batch's scale.
                 raise ValueError(
-                    f"the first batch's rewards used as weights (reward_range='positive') "
+                    f"the first batch's {name} used as weights (reward_range='positive') "
                     f"must reach {_SMALLEST_FIRST_WEIGHT:g}, whose square the DP mixture's "
                     f"variances hold; got max {float(rewards.max()):g}. Rescale them, or pass "
                     "reward_range=None."
@@ -109,7 +109,7 @@ class RewardScale:
         slack = 1e-9 * self.high - 1e-9 * self.low  # (high - low overflows beyond ±9e307)
         if (rewards < self.low - slack).any() or (rewards > self.high + slack).any():
             raise ValueError(
-                f"rewards outside reward_range ({self.low:g}, {self.high:g}): "
+                f"{name} outside reward_range ({self.low:g}, {self.high:g}): "
                 f"min {float(rewards.min()):g}, max {float(rewards.max()):g}"
             )
 
@@ -167,25 +167,26 @@ class RewardScale:
         return float(high - low)
 
 
-def check_rewards(rewards, batch: int, each: str = "asked θ") -> Tensor:
+def check_rewards(rewards, batch: int, each: str = "asked θ", name: str = "rewards") -> Tensor:
     """Validate ``rewards: [B]`` (a tensor, an array or a list of numbers) against the batch
-    size (one per ``each``); return them as float64, detached from any autograd graph."""
+    size (one per ``each``); return them as float64, detached from any autograd graph.
+    ``name`` is the argument the messages name."""
     if not isinstance(rewards, Tensor):
         try:
             rewards = torch.as_tensor(rewards)
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(
-                f"rewards must be a tensor, an array or a list of numbers, got {rewards!r}"
+                f"{name} must be a tensor, an array or a list of numbers, got {rewards!r}"
             ) from None
     if rewards.shape != (batch,):
         raise ValueError(
-            f"rewards must have shape [{batch}] (one per {each}), got {list(rewards.shape)}"
+            f"{name} must have shape [{batch}] (one per {each}), got {list(rewards.shape)}"
         )
     if rewards.dtype == torch.bool or not (rewards.is_floating_point() or rewards.dtype.is_signed):
-        raise ValueError(f"rewards must be real numbers, got dtype {rewards.dtype}")
+        raise ValueError(f"{name} must be real numbers, got dtype {rewards.dtype}")
     if rewards.device.type == "meta":
-        raise ValueError("rewards is a meta tensor (no values)")
-    check_finite(rewards, "rewards")
+        raise ValueError(f"{name} is a meta tensor (no values)")
+    check_finite(rewards, name)
     return rewards.detach().to(torch.float64)
 
 

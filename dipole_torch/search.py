@@ -436,8 +436,9 @@ class PolicySearch:
         """
         if not self.started:
             raise RuntimeError("reevaluate() needs a started run: tell() the first batch first")
-        returns = check_rewards(returns, self.num_policies, "stored policy").to(self.device)
-        self.reward_scale.validate(returns)
+        returns = check_rewards(returns, self.num_policies, "stored policy", "returns")
+        returns = returns.to(self.device)
+        self.reward_scale.validate(returns, name="returns")
         snapshot = self.state_dict()
         try:
             self._reevaluate(returns.to(DTYPE))

@@ -264,13 +264,6 @@ def test_asking_twice_warns_and_tell_takes_the_second_ask(kind):
         opt.tell(opt.ask(), torch.zeros(opt.batch_size, dtype=F64))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,  # the message does not match
-    reason="PolicySearch.reevaluate(returns) (dipole_torch/search.py:439-440) validates with "
-    "check_rewards and RewardScale.validate, whose messages name 'rewards' (check_rewards "
-    "takes no argument name): an error of reevaluate names no argument it has",
-)
 @pytest.mark.parametrize("kind", ["dipole", "paper", "power"])
 @pytest.mark.parametrize("bad", ["abc", "longer", "nan"])
 def test_bad_returns_to_reevaluate_are_refused_naming_them(kind, bad):
