@@ -5,7 +5,7 @@ multi-optima peers (IPOP-CMA-ES, NMMSO) and random search, on generated landscap
     python benchmarks/bench_multioptima.py --dims 2 --ks 2 4 --seeds 3 --workers 1 \\
         --json /tmp/multioptima.json                            # a quick look
 
-**Landscapes** (:func:`make_landscape`, seeded): k peaks of equal height (k even). Centres
+**Landscapes** (``make_landscape``, seeded): k peaks of equal height (k even). Centres
 c_i are uniform in [−5, 5]^D, the whole set redrawn until every pair is ≥ 2.0 apart;
 w_i = a quarter of the distance from c_i to its nearest other centre. Half the peaks are
 smooth bumps g_i(θ) = exp(−½ (θ−c_i)ᵀ A_i⁻¹ (θ−c_i)) with a random anisotropic covariance

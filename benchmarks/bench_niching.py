@@ -5,7 +5,7 @@ trials? DIPOLE against IPOP-CMA-ES, NMMSO and random search, in one run.
     python benchmarks/bench_niching.py --functions 2 4 7 --seeds 2 --budgets 2000 \\
         --json /tmp/niching.json                                 # a quick look
 
-**Functions** (:data:`FUNCTIONS`): F1–F10 of the CEC 2013 competition on niching methods
+**Functions** (``FUNCTIONS``): F1–F10 of the CEC 2013 competition on niching methods
 (Li, Engelbrecht & Epitropakis 2013, "Benchmark functions for CEC'2013 special session and
 competition on niching methods for multimodal function optimization"), maximised on their
 boxes: five-uneven-peak trap (1-D, 2 global optima on the box's ends), equal maxima (1-D, 5),

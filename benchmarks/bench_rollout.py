@@ -3,7 +3,7 @@ viapoint task's engines and kinematics paths.
 
 Environment steps per second, linear policy included, for B parallel episodes:
 
-* ``torch``: :meth:`dipole_torch.tasks.cartpole.CartPoleTask.evaluate` with ``engine="torch"`` (one
+* ``torch``: ``dipole_torch.tasks.cartpole.CartPoleTask.evaluate`` with ``engine="torch"`` (one
   batched rollout, 1000 steps), eager and with ``compile=True`` (its one-off compilation, ~1 min on
   CPU the first time, is excluded from the timing: the warm-up call pays it),
 * ``python``: the same ``evaluate`` with ``engine="python"``, the CPU default (one episode at a
@@ -20,11 +20,11 @@ continuous ``u = clip(θᵀx)``. The gymnasium environments reset automatically 
 episode ends; ours freezes failed episodes (the work per step is the same either way).
 
 Viapoint (``--task viapoint``): seconds per
-:meth:`dipole_torch.tasks.viapoint.ViapointTask.evaluate` (DS-GMR path, 140-step tracking IK on the
+``dipole_torch.tasks.viapoint.ViapointTask.evaluate`` (DS-GMR path, 140-step tracking IK on the
 WAM, eq. 9) of B policies drawn around θ0 with the task's exploration std, with the torch engine on
 the default kinematics (pytorch-kinematics' forward kinematics and ``chain.jacobian`` on the URDF)
 and on the WAM's analytic DH fast path (``kinematics=wam_dh``), and with the numpy engine (the
-CPU default: float64 arrays, :mod:`dipole_torch.models.numpy_kinematics`), on the same θ in the
+CPU default: float64 arrays, ``dipole_torch.models.numpy_kinematics``), on the same θ in the
 same run, best of ``--repeats`` timings; the ratios are pytorch-kinematics' time over the others'.
 
 Run: ``python benchmarks/bench_rollout.py [--task cartpole|viapoint|all] [--threads N]

@@ -62,7 +62,7 @@ def child_cpu(command: list[str], env: dict) -> tuple[float, str]:
 
 def median_cpu(command: list[str], env: dict, repeats: int, first_ask: bool = False) -> float:
     """Median over ``repeats`` runs; with ``first_ask``, the CPU time the child printed
-    (``command`` runs :data:`FIRST_ASK` or :data:`IMPORT_TORCH`)."""
+    (``command`` runs ``FIRST_ASK`` or ``IMPORT_TORCH``)."""
     times = []
     for _ in range(repeats):
         cpu, output = child_cpu(command, env)

@@ -98,7 +98,7 @@ def plot_best_and_average(
     legend sits below the panels. Written as ``path`` (PNG, 200 dpi) and as PDF beside it.
 
     Args:
-        curves: label -> ``[runs, 2, G]`` values from :func:`on_grid`.
+        curves: label -> ``[runs, 2, G]`` values from ``on_grid``.
         colors: label -> matplotlib colour.
     """
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), sharey=True)

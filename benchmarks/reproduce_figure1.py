@@ -20,11 +20,11 @@ Tasks, trial budgets and ``n0`` come from ``configs/task/{cartpole,mountain_car}
 algorithms get the same θ0, Σ_start, n0, M = 5 and reward_range (the paper's "same parameters
 as PoWER"). Three curves per plot:
 
-* **DIPOLE** (defaults of :class:`dipole_torch.Dipole`),
+* **DIPOLE** (defaults of ``dipole_torch.Dipole``),
 * **PoWER** with Σ_start fixed throughout (Algorithm 3 as written),
 * **PoWER, decaying exploration**: the paper's PoWER had its exploration covariance "manually
   reduced when the optimum was reached" on cart-pole; there is no principled moment to do
-  that by hand, so this curve uses :class:`dipole_torch.Power`'s reproducible stand-in,
+  that by hand, so this curve uses ``dipole_torch.Power``'s reproducible stand-in,
   Σ_t = Σ_start · max(decay^t, min_exploration), with ``DECAY = 0.98`` and the default
   ``min_exploration = 0.01``. The value was fixed once, before looking at any result, and is
   the same for both tasks: the floor (exploration std at 10 % of its start, which is also

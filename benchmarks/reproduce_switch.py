@@ -8,7 +8,7 @@ Per run (seed s):
 2. A sphere (8 cm, ``configs/task/viapoint_blocked.yaml``'s ``block.radius``) appears on the
    route of its best policy mean: on the viapoint that route passes at the pass time where
    the most other good routes (policy means with return >= 0.9) pass the other alternative
-   (:meth:`dipole_torch.tasks.viapoint.ViapointTask.blocking_obstacle`). A path that enters the
+   (``dipole_torch.tasks.viapoint.ViapointTask.blocking_obstacle``). A path that enters the
    sphere keeps ``exp(-depth / 2 cm)`` of its eq. 9 reward.
 3. DIPOLE evaluates its K stored policy means once each in the blocked world and is told so,
    ``opt.reevaluate(task.evaluate(opt.policy_means))`` (K trials): its best policy mean
@@ -100,7 +100,7 @@ def routes_of(task, theta: torch.Tensor, threshold: float) -> tuple[list, list, 
 
 
 class PerRunLayouts:
-    """The task :func:`lockstep.run_in_lockstep` sees when each run has its own obstacles:
+    """The task ``lockstep.run_in_lockstep`` sees when each run has its own obstacles:
     the stacked asks' arm paths are rolled out once (obstacles do not move the arm) and each
     run's rows are scored on its own layout. ``run_in_lockstep`` stacks the pending asks of
     the runs below their ``trials`` (one budget per run), in order: their sizes are the

@@ -16,14 +16,14 @@ Figure 3: the distinct routes found over all DIPOLE runs, one end-effector path 
 final policy mean of highest reward that takes it), with the viapoints, start and target.
 
 **Routes found** (the paper's "2.5 different policies per run"): a route is the alternative
-viapoint nearest to the arm's path at each pass time (:meth:`ViapointTask.route`). A run
+viapoint nearest to the arm's path at each pass time (``ViapointTask.route``). A run
 *finds* a route when one of its **final policy means**, evaluated without exploration noise,
 takes it with reward ≥ 0.9 (``--threshold``). A second, looser count is also reported: the
 routes of the samples in the final policies' importance sets (the best M = 5 samples of each
 policy, all evaluated with exploration noise) whose reward is ≥ 0.9.
 
 **End-point error**: the distance from the end of each final policy mean's arm path to the
-target (:meth:`ViapointTask.end_point_error`; eq. 9 does not score it), averaged over the
+target (``ViapointTask.end_point_error``; eq. 9 does not score it), averaged over the
 run's final policy means, then mean ± std over runs (printed in cm, in the JSON in m).
 
 Both algorithms get the task's θ0, Σ_start, n0 = 30, M = 5 and reward range (the paper's "same

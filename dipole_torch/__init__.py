@@ -1,9 +1,9 @@
 """dipole-torch: DIPOLE (Dirichlet-process policy learning) in PyTorch and Pyro.
 
-The optimizers (:class:`Dipole`, :class:`Power`), the DP mixture and its samplers
-(:class:`DPSampler`, :class:`DPMixtureState`), the Gaussian mixture of the policies
-(:class:`GaussianMixture`, a Pyro distribution) and the Pyro side (:class:`DPMixtureKernel`,
-:func:`dp_mixture_model`, :class:`InverseWishart`). Those four are imported on first use, so
+The optimizers (``Dipole``, ``Power``), the DP mixture and its samplers
+(``DPSampler``, ``DPMixtureState``), the Gaussian mixture of the policies
+(``GaussianMixture``, a Pyro distribution) and the Pyro side (``DPMixtureKernel``,
+``dp_mixture_model``, ``InverseWishart``). Those four are imported on first use, so
 that ``import dipole_torch`` and an optimizer's iterations do not import Pyro.
 """
 

@@ -20,7 +20,7 @@ PROBE = -2
 
 class SampleArchive:
     """The kept samples: ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]`` (a policy
-    index, or :data:`NO_POLICY`), re-indexed together.
+    index, or ``NO_POLICY``), re-indexed together.
 
     Args:
         dim: D.

@@ -1,24 +1,24 @@
 """Outputs that survive a crash, and checkpoints that are verified and load without running
 code.
 
-* :func:`atomic_write_bytes`, :func:`atomic_write_text` and :func:`atomic_save` write a file
+* ``atomic_write_bytes``, ``atomic_write_text`` and ``atomic_save`` write a file
   under a temporary name in the same directory, flush it to disk (``fsync``) and move it into
   place with ``os.replace``: a reader (or a run killed at any moment, ``kill -9`` included)
   sees either the previous complete file or the new complete one, never a partial file.
-* :func:`atomic_save` stores a SHA-256 of what it writes, and :func:`load_checkpoint`
+* ``atomic_save`` stores a SHA-256 of what it writes, and ``load_checkpoint``
   verifies it before unpickling anything: a file changed after it was written (a flipped bit,
   a truncated or extended copy, pieces of two files spliced together) is refused, never
   loaded with other contents. The digest detects damage, not forgery: anyone who can write
   the file can write a matching digest, which is why loading is also safe (next point).
-* :func:`load_checkpoint` unpickles with ``torch.load(weights_only=True)``: tensors, dicts,
+* ``load_checkpoint`` unpickles with ``torch.load(weights_only=True)``: tensors, dicts,
   lists, tuples, strings and numbers only. A file naming any other Python object (a pickle
   can name any callable, ``os.system`` included) is refused as unsafe and nothing in it is
   run; a file that is not a torch archive is never unpickled at all. Every failure to read a
-  file is a :class:`CheckpointError` that names the file and says what is wrong with it:
+  file is a ``CheckpointError`` that names the file and says what is wrong with it:
   missing, a directory, unreadable, empty, not a torch file, truncated or corrupt, failing
   its integrity check, unsafe, or another kind of file (not a dict, or lacking keys).
 
-The file format of :func:`atomic_save`: the zip archive that ``torch.save`` writes, with its
+The file format of ``atomic_save``: the zip archive that ``torch.save`` writes, with its
 archive comment set to a 56-byte integrity trailer::
 
     archive   the bytes of torch.save, except the comment length of the end-of-central-
@@ -28,7 +28,7 @@ archive comment set to a 56-byte integrity trailer::
               16 bytes  the marker b"\\x89DIPOLE-SHA256\\r\\n"
 
 The whole file is a valid zip archive, so ``torch.load`` (and any zip reader) still reads it
-directly. :func:`load_checkpoint` takes a file ending with the marker to be of this format and
+directly. ``load_checkpoint`` takes a file ending with the marker to be of this format and
 requires the length to be the file's size less 56 and the digest to match: every byte of the
 file is then checked.
 
@@ -140,7 +140,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 def atomic_save(obj: Any, path: str | os.PathLike) -> None:
     """``torch.save(obj, path)`` atomically, with an integrity trailer: ``path`` holds the old
-    file or the new one, and :func:`load_checkpoint` refuses it if any byte changes later.
+    file or the new one, and ``load_checkpoint`` refuses it if any byte changes later.
 
     The file is the zip archive of ``torch.save`` whose archive comment is the trailer (see
     the module docstring), so ``torch.load(path)`` also reads it.
@@ -158,7 +158,7 @@ def atomic_save(obj: Any, path: str | os.PathLike) -> None:
 
 def _with_integrity_trailer(archive: bytes) -> tuple[bytes, bytes]:
     """``(archive with a 56-byte comment declared, the trailer that is that comment)`` for the
-    bytes of ``torch.save``; their concatenation is what :func:`atomic_save` writes.
+    bytes of ``torch.save``; their concatenation is what ``atomic_save`` writes.
 
     Raises:
         ValueError: ``archive`` does not end with an end-of-central-directory record with an
@@ -180,10 +180,10 @@ def load_checkpoint(
     kind: str = "checkpoint",
     hint: str = "",
 ) -> dict:
-    """Load a dict saved by :func:`atomic_save`, after checking its integrity, with
+    """Load a dict saved by ``atomic_save``, after checking its integrity, with
     ``torch.load(weights_only=True)``.
 
-    A file of :func:`atomic_save`'s format must match its SHA-256; a legacy file (plain
+    A file of ``atomic_save``'s format must match its SHA-256; a legacy file (plain
     ``torch.save``, no trailer) must be a complete zip archive whose records match their
     CRC-32 (see the module docstring). Only then is the file unpickled, from the bytes that
     were checked.
@@ -247,7 +247,7 @@ def load_checkpoint(
 
 
 def _check_bytes(data: bytes, kind: str, name: str) -> bool:
-    """Raise a :class:`CheckpointError` unless ``data`` is a file of :func:`atomic_save`'s
+    """Raise a ``CheckpointError`` unless ``data`` is a file of ``atomic_save``'s
     format that matches its digest (return True), or a complete legacy archive whose
     CRC-32s match (return False)."""
     size = len(data)

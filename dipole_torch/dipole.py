@@ -41,20 +41,20 @@ class Dipole(PolicySearch):
 
     * ``ask()``: first ``n0`` samples from N(θ0, Σ_start); then one sample per sampled policy
       from its exploration Gaussian, and any scouts and hill-valley probes
-      (:attr:`asked_owner` says which row is which).
+      (``asked_owner`` says which row is which).
     * ``tell()``: the PoWER step (eq. 7) of every policy on its importance set; after the
       initial batch and every ``cluster_every`` iterations, a weighted DP clustering (eq. 6,
       Neal's Algorithm 8) of the kept samples, augmented with their reward weights
       y = [θ, w], redefines the policies.
 
-    The options (:class:`~dipole_torch.DipoleOptions`: keyword arguments, or ``options=``)
+    The options (``DipoleOptions``: keyword arguments, or ``options=``)
     choose one object per mechanism, and the core below calls them at fixed points of an
-    iteration: the importance sets (:mod:`dipole_torch.power`), exploration
-    (:mod:`~dipole_torch.mechanisms.exploration`), scouting and turn-taking
-    (:mod:`~dipole_torch.mechanisms.scouting`), hill-valley vetting
-    (:mod:`~dipole_torch.mechanisms.hill_valley`), retirement, merging and restarts
-    (:mod:`~dipole_torch.mechanisms.retirement`), and matching components to policies
-    (:mod:`~dipole_torch.mechanisms.matching`). :meth:`paper` builds the paper's set.
+    iteration: the importance sets (``dipole_torch.power``), exploration
+    (``exploration``), scouting and turn-taking
+    (``scouting``), hill-valley vetting
+    (``hill_valley``), retirement, merging and restarts
+    (``retirement``), and matching components to policies
+    (``matching``). ``paper`` builds the paper's set.
 
     >>> opt = Dipole([0.0, 0.0], 0.7, generator=torch.Generator().manual_seed(0))
     >>> while not opt.stop(max_trials=300):
@@ -67,13 +67,13 @@ class Dipole(PolicySearch):
         theta0: ``[D]`` initial policy (a tensor, a list or a numpy array).
         sigma_start: initial exploration: one std σ (σ² I), ``[D]`` stds or a ``[D, D]``
             covariance Σ_start.
-        options: a :class:`~dipole_torch.DipoleOptions` (default: the library's variant).
+        options: a ``DipoleOptions`` (default: the library's variant).
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
         bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or
             ``[D]`` tensors; ±inf leaves a side open), or ``None``.
         **changes: options to change (``alpha``, ``M``, ``explore``, …; see
-            :class:`~dipole_torch.DipoleOptions`).
+            ``DipoleOptions``).
 
     Choices where the paper is silent:
         * The prior H is built at the first clustering from the exploration distribution:
@@ -82,7 +82,7 @@ class Dipole(PolicySearch):
           p = D + 1 dimensions of y: the weakest inverse-Wishart prior with a finite mean).
           It is carried from clustering to clustering, updated after every sweep.
         * A clustering ends with the conditional posterior means of the last Gibbs state
-          (:func:`~dipole_torch.dp.posterior_point_estimate`).
+          (``posterior_point_estimate``).
         * r_c in eq. 6 is E[w | θ = μ_c^θ] under the mixture at the start of each sweep.
     """
 
@@ -138,7 +138,7 @@ class Dipole(PolicySearch):
 
     @classmethod
     def paper(cls, theta0: Theta0, sigma_start: SigmaStart, **changes: Any) -> Dipole:
-        """DIPOLE exactly as in the paper (:meth:`DipoleOptions.paper`), then ``changes``."""
+        """DIPOLE exactly as in the paper (``DipoleOptions.paper``), then ``changes``."""
         generator, bounds = changes.pop("generator", None), changes.pop("bounds", None)
         return cls(theta0, sigma_start, DipoleOptions.paper(**changes),
                    generator=generator, bounds=bounds)  # fmt: skip
@@ -244,7 +244,7 @@ class Dipole(PolicySearch):
 
     def _cluster(self) -> None:
         """Algorithm 2's weighted DP clustering, warm-started, its result matched to the
-        policies (:attr:`matching` decides which samples, the start, and the matching)."""
+        policies (``matching`` decides which samples, the start, and the matching)."""
         rows = self.matching.clustered_rows(self)
         if rows.numel() == 0:
             return

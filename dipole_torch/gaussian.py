@@ -3,7 +3,7 @@ Cholesky factors, symmetric positive-definite inverses, and draws given a precis
 
 No distribution objects: at DIPOLE's sizes (a few points, D ≈ 10) their construction
 (broadcasting, validation) costs more than the arithmetic. All DP mathematics runs in float64
-(:data:`DTYPE`): with D ≈ 10 and a few points per component, float32 Cholesky factors of the
+(``DTYPE``): with D ≈ 10 and a few points per component, float32 Cholesky factors of the
 sampled covariances lose positive definiteness.
 """
 
@@ -70,7 +70,7 @@ def log_prob_tril(value: Tensor, mean: Tensor | float, tril: Tensor) -> Tensor:
 
 
 def gaussian_log_prob(value: Tensor, means: Tensor, covariances: Tensor) -> Tensor:
-    """``[...]`` log N(value; means, covariances), broadcast as :func:`log_prob_tril`."""
+    """``[...]`` log N(value; means, covariances), broadcast as ``log_prob_tril``."""
     return log_prob_tril(value, means, torch.linalg.cholesky(covariances))
 
 

@@ -34,7 +34,7 @@ class GaussianMixture(TorchDistribution):
         means: ``[..., K, D]`` component means.
         covariances: ``[..., K, D, D]`` symmetric positive-definite component covariances.
         validate_args: check the parameters at construction (shapes, finiteness, positive
-            definiteness, with an error naming the argument) and values in :meth:`log_prob`.
+            definiteness, with an error naming the argument) and values in ``log_prob``.
             ``None`` follows ``torch.distributions.Distribution``'s default (on, unless
             switched off by ``Distribution.set_default_validate_args`` or
             ``pyro.enable_validation(False)``).
@@ -139,7 +139,7 @@ class GaussianMixture(TorchDistribution):
 
     @property
     def variance(self) -> Tensor:
-        """``[..., D]`` marginal variances, the diagonal of :attr:`covariance_matrix`."""
+        """``[..., D]`` marginal variances, the diagonal of ``covariance_matrix``."""
         return self.covariance_matrix.diagonal(dim1=-2, dim2=-1)
 
     @property

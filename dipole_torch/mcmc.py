@@ -1,12 +1,12 @@
 """The DP mixture's Gibbs sampler as a Pyro MCMC kernel.
 
 ``pyro.infer.MCMC(DPMixtureKernel(DPSampler(prior)), num_samples=..., warmup_steps=...).run(y)``
-runs the sweeps of a :class:`~dipole_torch.dp.DPSampler` (Algorithm 8, re-used auxiliaries or
+runs the sweeps of a ``DPSampler`` (Algorithm 8, re-used auxiliaries or
 the slice sampler) with Pyro's progress bar, and keeps label-switching-invariant summaries of
 every kept state for ``get_samples()``, ``summary()`` and ``diagnostics()``.
 
 The kernel adds nothing to the chain: with the same generator it makes exactly the sweeps of
-:meth:`DPSampler.fit <dipole_torch.dp.DPSampler.fit>` (``tests/test_mcmc.py`` checks this).
+``DPSampler.fit <dipole_torch.dp.DPSampler.fit>`` (``tests/test_mcmc.py`` checks this).
 It does add bookkeeping (``benchmarks/bench_mcmc_kernel.py`` measures it), so DIPOLE's own
 clusterings call the sampler directly.
 """
@@ -27,7 +27,7 @@ __all__ = ["DPMixtureKernel"]
 
 
 class DPMixtureKernel(MCMCKernel):
-    """One step = one sweep of ``sampler`` (a :class:`~dipole_torch.dp.DPSampler`) on the DP
+    """One step = one sweep of ``sampler`` (a ``DPSampler``) on the DP
     Gaussian mixture.
 
     Run it with ``pyro.infer.MCMC(kernel, num_samples, warmup_steps).run(y)``, ``y: [N, D]``.
@@ -38,18 +38,18 @@ class DPMixtureKernel(MCMCKernel):
       (so that they do not switch between samples);
     * ``point_means``: ``[N, D]`` μ_{c_i}, the mean of the component of each point;
     * ``log_joint``: ``[]`` log p(labels, μ, Σ, y) under the state's H
-      (:func:`dipole_torch.pyro_model.dp_log_joint`; with ``reward_weighted=True`` the chain
+      (``dipole_torch.pyro_model.dp_log_joint``; with ``reward_weighted=True`` the chain
       samples a reweighted distribution and this is a diagnostic only).
 
     ``MCMC(..., save_params=[...])`` keeps a subset. The full current state (a
-    :class:`~dipole_torch.dp.DPMixtureState`, e.g. ``kernel.state.mixture()``) is
-    :attr:`state`; a ``hook_fn(kernel, params, stage, i)`` passed to ``MCMC`` sees every one.
+    ``DPMixtureState``, e.g. ``kernel.state.mixture()``) is
+    ``state``; a ``hook_fn(kernel, params, stage, i)`` passed to ``MCMC`` sees every one.
 
     Args:
         sampler: the sampler whose sweeps are the steps (its prior starts the chain).
         init: ``"single"`` (one component, Algorithm 1's start) or ``"sequential"`` (one
             sequential CRP pass); ignored when ``MCMC(initial_params={"labels": ...})`` or
-            :attr:`initial_params` gives labels.
+            ``initial_params`` gives labels.
         generator: source of all randomness (``None``: the global RNG, e.g.
             ``pyro.set_rng_seed``).
 
@@ -119,7 +119,7 @@ class DPMixtureKernel(MCMCKernel):
 
     @property
     def initial_params(self) -> dict[str, Tensor]:
-        """The summaries of the chain's start (after :meth:`setup`)."""
+        """The summaries of the chain's start (after ``setup``)."""
         if self._params is None:
             raise RuntimeError("initial_params exist after setup(warmup_steps, y)")
         return self._params
@@ -168,7 +168,7 @@ class DPMixtureKernel(MCMCKernel):
     @property
     def chain(self) -> Chain:
         """What the sampler carries between sweeps: the state for Algorithm 8, the
-        :class:`~dipole_torch.dp.SliceChain` (stick labels, every stick's atom) for the
+        ``SliceChain`` (stick labels, every stick's atom) for the
         slice sampler."""
         if self._chain is None:
             raise RuntimeError("the kernel has no state before setup(warmup_steps, y)")

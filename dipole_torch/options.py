@@ -1,4 +1,4 @@
-"""DIPOLE's options as one validated object; :meth:`DipoleOptions.paper` is the paper's set."""
+"""DIPOLE's options as one validated object; ``DipoleOptions.paper`` is the paper's set."""
 
 from __future__ import annotations
 
@@ -15,14 +15,14 @@ __all__ = ["DipoleOptions"]
 
 @dataclass(frozen=True)
 class DipoleOptions:
-    """Every option of :class:`~dipole_torch.Dipole`, with its default (the library's variant).
+    """Every option of ``Dipole``, with its default (the library's variant).
 
     Each option is checked when the object is built, with a message naming it; combinations
     that cannot run together are refused there too, naming the conflict. ``replace(**changes)``
-    gives a checked copy. :meth:`paper` is the paper's set.
+    gives a checked copy. ``paper`` is the paper's set.
 
     =====================  ==============================  ===================================
-    option                 default                         the paper (:meth:`paper`)
+    option                 default                         the paper (``paper``)
     =====================  ==============================  ===================================
     ``reward_range``       ``None``: min–max of the kept   ``"positive"`` (returns used as
                            returns (any units)             they are), or a fixed range

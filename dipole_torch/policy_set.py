@@ -24,11 +24,11 @@ class PolicySet:
     """K policies in rows: ``means [K, D]``, ``covariances [K, D, D]`` (each policy's
     exploration), ``active [K]`` (whether it is still sampled), ``ids [K]`` (a number that
     stays a policy's own while others come and go: 0, 1, 2, … in order of creation), and the
-    fields mechanisms register (:meth:`register`, e.g. ``success [K]`` and ``paths [K, D]``).
+    fields mechanisms register (``register``, e.g. ``success [K]`` and ``paths [K, D]``).
 
-    Every tensor follows the same rows: :meth:`index` keeps a subset of the policies in all of
-    them, :meth:`extend` appends new policies (fields at their defaults), :meth:`reset`
-    replaces them all. A new per-policy tensor is one :meth:`register` call.
+    Every tensor follows the same rows: ``index`` keeps a subset of the policies in all of
+    them, ``extend`` appends new policies (fields at their defaults), ``reset``
+    replaces them all. A new per-policy tensor is one ``register`` call.
 
     Args:
         means: ``[K, D]`` policy means.

@@ -1,13 +1,13 @@
 """PoWER's step (Kober & Peters 2011; the paper's Algorithm 3), batched over policies: eq. 7
-(:func:`power_update`) on each policy's importance set.
+(``power_update``) on each policy's importance set.
 
 The importance sets ("select the best M points") come in two variants, one object each:
 
-* :class:`GlobalImportance` — the paper's DIPOLE and PoWER: "importance sampling is performed
+* ``GlobalImportance`` — the paper's DIPOLE and PoWER: "importance sampling is performed
   by keeping a fixed number of elements K·M at every iteration" — the best K·M samples
   overall; each policy then averages its own best M among them, weighted by the reward
   weights of all kept returns.
-* :class:`PolicyImportance` — the default of :class:`~dipole_torch.Dipole`: every policy keeps
+* ``PolicyImportance`` — the default of ``Dipole``: every policy keeps
   its own best M, weighted by the min–max of its own M returns, so a policy on an optimum as
   good as the others' is not lost when its latest samples are a little worse than theirs.
 """
@@ -101,7 +101,7 @@ def importance_sets(
 def _importance_sets_numpy(
     owner: Tensor, rewards: Tensor, num_policies: int, size: int
 ) -> tuple[Tensor, Tensor, Tensor] | None:
-    """:func:`importance_sets` on CPU with numpy: the same two stable sorts and integer
+    """``importance_sets`` on CPU with numpy: the same two stable sorts and integer
     bookkeeping (exact), in a fraction of the ~20 small-tensor ops' overhead. ``None`` for
     inputs whose handling is left to the torch path (empty, NaN, owners outside
     ``[0, num_policies)``), so errors and NaN ordering stay torch's."""
@@ -181,5 +181,5 @@ class GlobalImportance(PolicyImportance):
 
 
 def make_importance(kind: str) -> PolicyImportance:
-    """``"policy"`` → :class:`PolicyImportance`, ``"global"`` → :class:`GlobalImportance`."""
+    """``"policy"`` → ``PolicyImportance``, ``"global"`` → ``GlobalImportance``."""
     return GlobalImportance() if kind == "global" else PolicyImportance()

@@ -40,7 +40,7 @@ class Power(PolicySearch):
         n0: initial samples (default M).
         reward_range: ``None`` (default): returns mapped to weights in [floor, 1] by the
             min–max of the kept returns; ``(low, high)``: a fixed map; ``"positive"``:
-            positive returns used as weights (see :class:`dipole_torch.RewardScale`).
+            positive returns used as weights (see ``dipole_torch.RewardScale``).
         reward_floor: smallest reward weight, in (0, 1).
         exploration_decay: per-iteration factor on the covariance, in (0, 1].
         min_exploration: floor of that factor, in (0, 1].
@@ -48,7 +48,7 @@ class Power(PolicySearch):
             generator).
         bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or
             ``[D]`` tensors; ±inf leaves a side open), or ``None``; see
-            :class:`~dipole_torch.search.PolicySearch`.
+            ``PolicySearch``.
     """
 
     def __init__(

@@ -32,7 +32,7 @@ class NormalInverseWishartPrior:
             derives it from the initial exploration noise.
 
     Conventions: Σ ~ IW(ν, Ψ) has Σ⁻¹ ~ Wishart(ν, Ψ⁻¹) and E[Σ] = Ψ / (ν − D − 1); it is
-    drawn directly by Bartlett's decomposition (:func:`dipole_torch.sampling.inverse_wishart`);
+    drawn directly by Bartlett's decomposition (``dipole_torch.sampling.inverse_wishart``);
     tests/test_sampling.py checks the moments against ``torch.distributions.Wishart``'s.
     """
 
@@ -104,7 +104,7 @@ class NormalInverseWishartPrior:
     ) -> Tensor | tuple[Tensor, Tensor]:
         """``[..., D, D]`` draws of IW(df, scale) (batched over ``scale``'s leading dims).
 
-        A direct Bartlett draw (:func:`dipole_torch.sampling.inverse_wishart`) from
+        A direct Bartlett draw (``dipole_torch.sampling.inverse_wishart``) from
         ``generator``. With ``num_uniforms > 0``, ``[num_uniforms]`` float64 U(0, 1) draws
         made next from the same generator are returned too, as a pair (the Metropolis-Hastings
         acceptance uniforms of the Σ step).
@@ -126,7 +126,7 @@ class NormalInverseWishartPrior:
         """Draw n component parameters from H (means first, then covariances).
 
         Ψ0 and Σ0 are factorised once for all n draws. ``symmetrize=False`` leaves the
-        covariances symmetric up to rounding (see :func:`dipole_torch.sampling.inverse_wishart`).
+        covariances symmetric up to rounding (see ``dipole_torch.sampling.inverse_wishart``).
 
         Returns:
             means ``[n, D]``, covariances ``[n, D, D]`` (regularised).
@@ -234,7 +234,7 @@ class NormalInverseWishartPrior:
         )
 
     def _mean_covariance_inverse(self) -> Tensor:
-        """``[D, D]`` Σ0⁻¹ symmetrised, as :func:`~dipole_torch.gaussian.spd_inverse` computes
+        """``[D, D]`` Σ0⁻¹ symmetrised, as ``spd_inverse`` computes
         it (memoised)."""
         return self._memo(
             "mean_inverse", "mean_covariance", lambda _: symmetric(self._mean_precision())
@@ -245,7 +245,7 @@ class NormalInverseWishartPrior:
         return self._memo("scale_tril", "scale", torch.linalg.cholesky)
 
     def _scale_inverse(self) -> Tensor:
-        """``[D, D]`` Ψ0⁻¹ symmetrised, as :func:`~dipole_torch.gaussian.spd_inverse` computes
+        """``[D, D]`` Ψ0⁻¹ symmetrised, as ``spd_inverse`` computes
         it (memoised)."""
         return self._memo(
             "scale_inverse",

@@ -1,17 +1,17 @@
 """The generative model behind the DP mixture, written as a Pyro model.
 
-Neal's Algorithm 8 (:class:`dipole_torch.DPSampler` with ``reward_weighted=False`` and
+Neal's Algorithm 8 (``dipole_torch.DPSampler`` with ``reward_weighted=False`` and
 ``update_prior=False``) is a Gibbs sampler for the posterior of this model:
 
 * labels c_1..c_N from the Chinese restaurant process with concentration α: c_1 = 0 and
   c_i | c_<i takes an existing table k with probability n_k / (i − 1 + α) or opens table K
   with probability α / (i − 1 + α) (labels in order of first appearance);
 * for each of the K tables, independently, μ_k ~ N(μ0, Σ0) and Σ_k ~ IW(ν0, Ψ0) (the
-  non-linked base distribution H, :class:`~dipole_torch.NormalInverseWishartPrior`);
+  non-linked base distribution H, ``NormalInverseWishartPrior``);
 * y_i ~ N(μ_{c_i}, Σ_{c_i} + R), R the prior's regularisation.
 
-:func:`dp_mixture_model` is that model for ``pyro.poutine`` (trace, condition, replay);
-:func:`dp_log_joint` is its log joint density written out in closed form (the CRP's
+``dp_mixture_model`` is that model for ``pyro.poutine`` (trace, condition, replay);
+``dp_log_joint`` is its log joint density written out in closed form (the CRP's
 exchangeable partition probability and H's densities), which is what the sampler's
 conditionals are derived from. ``tests/test_pyro_model.py`` checks that the two agree, that
 the sampler's μ and Σ conditionals are ratios of this joint, and runs a Geweke
@@ -57,7 +57,7 @@ class InverseWishart(TorchDistribution):
                    − ½ tr(Ψ Σ⁻¹)
 
     Draws are Σ = W⁻¹ with ``W ~ torch.distributions.Wishart(df=ν, precision_matrix=Ψ)``,
-    the convention of :class:`~dipole_torch.NormalInverseWishartPrior`.
+    the convention of ``NormalInverseWishartPrior``.
 
     Args:
         df: scalar or ``[...]`` degrees of freedom ν > D − 1.
@@ -149,8 +149,8 @@ def dp_mixture_model(
       ``covariances`` ``[B, N, D, D]`` ~ IW(ν0, Ψ0) (Σ_k without the regularisation);
     * in the plate ``data`` (N points): ``y`` ``[B, N, D]`` ~ N(μ_{c_i}, Σ_{c_i} + R).
 
-    Condition on :func:`state_sites` to score a sampler state; run it unconditioned for
-    forward draws (:func:`state_from_trace` turns a trace back into a state).
+    Condition on ``state_sites`` to score a sampler state; run it unconditioned for
+    forward draws (``state_from_trace`` turns a trace back into a state).
 
     Args:
         prior: the base distribution H (held fixed).
@@ -239,9 +239,9 @@ def canonical_state(state: DPMixtureState) -> DPMixtureState:
 
 
 def state_sites(state: DPMixtureState, y: Tensor | None = None) -> dict[str, Tensor]:
-    """Site values of :func:`dp_mixture_model` for a sampler state (to ``poutine.condition``).
+    """Site values of ``dp_mixture_model`` for a sampler state (to ``poutine.condition``).
 
-    Components are renumbered in order of first appearance (:func:`canonical_state`); the
+    Components are renumbered in order of first appearance (``canonical_state``); the
     N − K unused slots get H's mean and expected covariance (masked out of the density).
 
     Args:
@@ -264,7 +264,7 @@ def state_sites(state: DPMixtureState, y: Tensor | None = None) -> dict[str, Ten
 
 
 def state_from_trace(trace: pyro.poutine.Trace, prior: NormalInverseWishartPrior) -> DPMixtureState:
-    """The sampler state of an unbatched :func:`dp_mixture_model` trace (the K used slots,
+    """The sampler state of an unbatched ``dp_mixture_model`` trace (the K used slots,
     covariances with R added)."""
     num_points = sum(1 for name in trace.nodes if name.startswith("label_"))
     labels = torch.stack([trace.nodes[f"label_{i}"]["value"] for i in range(num_points)])

@@ -208,7 +208,7 @@ def check_reward_range(reward_range, name: str = "reward_range") -> None:
 
 
 def make_reward_scale(reward_range: RewardRange, floor: float) -> RewardScale:
-    """The :class:`RewardScale` of ``reward_range``: ``None``, adaptive (the kept returns'
+    """The ``RewardScale`` of ``reward_range``: ``None``, adaptive (the kept returns'
     min–max); ``(low, high)``, fixed; ``"positive"``, positive returns used as they are."""
     check_reward_range(reward_range)
     if reward_range is None:

@@ -7,7 +7,7 @@ and restores the global state: the result depends on the generator alone, and th
 global-RNG stream is left exactly as it was.
 
 The (inverse-)Wishart draws of the Gibbs sweep are the exception: they are made directly from
-the generator by Bartlett's decomposition (:func:`inverse_wishart`, :func:`wishart`), because
+the generator by Bartlett's decomposition (``inverse_wishart``, ``wishart``), because
 ``torch.distributions.Wishart`` factorises its scale once per draw, checks its support and
 draws every sample twice, which made them most of a sweep's time at large N.
 """
@@ -59,7 +59,7 @@ def draw_with_uniforms(
     sample_shape: torch.Size | tuple[int, ...] = (),
     generator: torch.Generator | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`draw`, followed by ``num_uniforms`` U(0, 1) draws from the same seed.
+    """``draw``, followed by ``num_uniforms`` U(0, 1) draws from the same seed.
 
     A Metropolis-Hastings step needs an acceptance uniform next to each proposal. Drawn here,
     from the one seed the proposal takes from ``generator`` anyway, they leave the generator's
@@ -150,9 +150,9 @@ def _seeded_gaussian(
 def _draw_normal_seeded(
     distribution: MultivariateNormal, num_uniforms: int, shape: torch.Size, seed: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`draw_with_uniforms` of a CPU ``MultivariateNormal`` without forking the global
+    """``draw_with_uniforms`` of a CPU ``MultivariateNormal`` without forking the global
     RNG (saving and restoring its state cost more than the draw): the draw of
-    :func:`_seeded_gaussian`, then the uniforms from the same private generator."""
+    ``_seeded_gaussian``, then the uniforms from the same private generator."""
     value, generator = _seeded_gaussian(
         distribution.loc, distribution._unbroadcasted_scale_tril, tuple(shape), seed
     )
@@ -187,7 +187,7 @@ def draw_categorical(logits: torch.Tensor, uniform: torch.Tensor) -> torch.Tenso
 
 
 def draw_categorical_numpy(logits: np.ndarray, uniform: float) -> int:
-    """:func:`draw_categorical` for one ``[C]`` float64 numpy row: the same right-sided
+    """``draw_categorical`` for one ``[C]`` float64 numpy row: the same right-sided
     inverse-CDF search, at a fraction of the cost per call (the CPU label loop's draw).
 
     Args:

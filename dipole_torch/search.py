@@ -40,7 +40,7 @@ __all__ = ["NO_POLICY", "PROBE", "PolicySearch", "TellBatch"]
 class TellBatch:
     """What one ``tell`` reports, as the optimizer's mechanisms see it (float64, on the
     optimizer's device): ``theta [B, D]``, ``rewards [B]``, ``owner [B]`` (see
-    :mod:`dipole_torch.archive`: a policy, a scout, a probe) and whether the ask was ``cut``
+    ``dipole_torch.archive``: a policy, a scout, a probe) and whether the ask was ``cut``
     to its first B rows."""
 
     theta: Tensor
@@ -50,11 +50,11 @@ class TellBatch:
 
 
 class PolicySearch:
-    """Ask/tell over a :class:`~dipole_torch.policy_set.PolicySet` and a
-    :class:`~dipole_torch.archive.SampleArchive`: proposals, the transactional tell, the box,
+    """Ask/tell over a ``PolicySet`` and a
+    ``SampleArchive``: proposals, the transactional tell, the box,
     best-so-far, results and checkpoints. Subclasses decide what an ask proposes and what a
-    tell changes (:meth:`_propose`, :meth:`_observe`, :meth:`_after_initial_batch`,
-    :meth:`_iterate`).
+    tell changes (``_propose``, ``_observe``, ``_after_initial_batch``,
+    ``_iterate``).
 
     Internal maths run in float64 on ``theta0``'s device; ``ask`` returns ``theta0``'s dtype
     (float64 for a list). ``tell`` is transactional: if it raises, the optimizer is exactly as
@@ -72,7 +72,7 @@ class PolicySearch:
         M: importance-set size (a checked positive integer).
         n0: initial samples (a checked positive integer).
         reward_range: ``None``, ``(low, high)`` or ``"positive"`` (see
-            :class:`dipole_torch.RewardScale`).
+            ``dipole_torch.RewardScale``).
         reward_floor: smallest reward weight.
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator, as torch's own samplers follow ``torch.manual_seed``).
@@ -222,7 +222,7 @@ class PolicySearch:
     @property
     def result(self) -> SearchResult:
         """Where the run stands: the best evaluation and every policy (see
-        :class:`SearchResult`; ``print`` it for a summary)."""
+        ``SearchResult``; ``print`` it for a summary)."""
         best_theta, best_reward = self.best()
         return SearchResult(
             best_theta=best_theta,
@@ -239,7 +239,7 @@ class PolicySearch:
     # ------------------------------------------------------------------ ask
     @property
     def batch_size(self) -> int:
-        """Rows the next :meth:`ask` returns (before ``max_rows``): known before the draw,
+        """Rows the next ``ask`` returns (before ``max_rows``): known before the draw,
         so a run can decide whether the next batch fits its trial budget."""
         return self.n0 if not self.started else self._batch_size()
 
@@ -252,12 +252,12 @@ class PolicySearch:
         Args:
             max_rows: return only the first ``max_rows`` rows of the batch (e.g. to end a run
                 exactly at a trial budget); the draws are those of the whole batch, and
-                :meth:`tell` takes the rows returned.
+                ``tell`` takes the rows returned.
 
         Returns:
             ``[n0, D]`` draws from N(θ0, Σ_start) on the first call; afterwards ``[B, D]``:
             one row per sampled policy, drawn from its Gaussian, then any exploration rows
-            (see :attr:`asked_owner`). Asking again before telling discards the previous
+            (see ``asked_owner``). Asking again before telling discards the previous
             proposal, with a warning.
         """
         check_count(max_rows, "max_rows", optional=True)
@@ -281,7 +281,7 @@ class PolicySearch:
     @property
     def asked_owner(self) -> Tensor | None:
         """``[B]`` the policy each row of the pending ask belongs to (−1: a scout of no
-        policy yet, −2: a probe; see :mod:`dipole_torch.archive`)."""
+        policy yet, −2: a probe; see ``dipole_torch.archive``)."""
         return self._pending_owner
 
     def _propose(self) -> tuple[Tensor, Tensor]:
@@ -334,7 +334,7 @@ class PolicySearch:
 
     # ------------------------------------------------------------------ tell
     def tell(self, theta: Tensor, rewards: Tensor) -> None:
-        """Report the returns of the parameters from the last :meth:`ask`.
+        """Report the returns of the parameters from the last ``ask``.
 
         Args:
             theta: ``[B, D]`` the asked parameters (row i as asked), or only the first
@@ -418,7 +418,7 @@ class PolicySearch:
 
         Every return the optimizer kept was measured before the change and is forgotten:
         each policy keeps one sample, its mean, with its new return, and the best so far
-        (:meth:`best`) becomes the best policy mean. A policy whose new return is below every
+        (``best``) becomes the best policy mean. A policy whose new return is below every
         return it had kept was hurt by the change: it is sampled again (a retired one too)
         from its mean with Σ_start's exploration, so it searches for a way around. The others
         go on as before. The next ``ask``/``tell`` continue the run; the trial count grows by
@@ -429,7 +429,7 @@ class PolicySearch:
             best_policy = opt.policy_means[opt.last_rewards.argmax()]   # switch to it
 
         Args:
-            returns: ``[K]`` the return of each row of :attr:`policy_means`, finite (and inside
+            returns: ``[K]`` the return of each row of ``policy_means``, finite (and inside
                 ``reward_range`` when a fixed one was given).
 
         A pending ``ask`` is discarded. If anything raises, the optimizer is unchanged.
@@ -495,7 +495,7 @@ class PolicySearch:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from ``state`` (of :meth:`state_dict`); raises ``ValueError`` naming what
+        """Continue from ``state`` (of ``state_dict``); raises ``ValueError`` naming what
         does not fit this optimizer (another kind, another dimension, a missing key), and
         then the optimizer is as it was before the call."""
         if not isinstance(state, dict):

@@ -3,7 +3,7 @@
 Calinon, Li, Alizadeh, Tsagarakis & Caldwell (2012), "Statistical dynamical systems for skills
 acquisition in humanoids" (Humanoids 2012); the public pbdlib-matlab ``demo_DSGMR01`` shows the
 same scheme. A Gaussian mixture over ``[t, x]`` encodes the path of the spring's equilibrium
-point: Gaussian mixture regression (GMR, :meth:`dipole_torch.GaussianMixture.condition`) gives
+point: Gaussian mixture regression (GMR, ``dipole_torch.GaussianMixture.condition``) gives
 the attractor
 
     x̂(t) = Σ_i h_i(t) μ_i^x,    h_i(t) ∝ N(t; μ_i^t, σ_t²),
@@ -64,7 +64,7 @@ class DSGMR:
         time_std: σ_t of every component's time marginal, seconds (default: half the spacing
             of the time centres).
         goal_time: time centre (s, in ``(0, duration]``) of a fixed final component at the
-            goal point passed to :meth:`rollout`; ``None`` (default): no fixed component.
+            goal point passed to ``rollout``; ``None`` (default): no fixed component.
         device, dtype: of the time grid and of the generated trajectories.
     """
 
@@ -158,12 +158,12 @@ class DSGMR:
         )
 
     def attractor_path(self, theta: Tensor, goal: Tensor | None = None) -> Tensor:
-        """GMR attractor x̂(t) ``[B, T+1, dim]`` on the time grid :attr:`times` (``goal:
+        """GMR attractor x̂(t) ``[B, T+1, dim]`` on the time grid ``times`` (``goal:
         [dim]`` required with a goal component, else ``None``).
 
         Without t–x coupling, GMR's mean is ``Σ_i h_i(t) μ_i^x`` with the responsibilities
         ``h_i(t)`` of the time marginal, which do not depend on θ: they are computed once
-        (:meth:`GaussianMixture.responsibilities`) and the path is one matrix product.
+        (``GaussianMixture.responsibilities``) and the path is one matrix product.
         """
         centres = self._all_centres(theta, goal)
         if self._activations is None or self._activations.dtype != theta.dtype:
@@ -200,7 +200,7 @@ class DSGMR:
         start: NDArray[np.float64],
         goal: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float64]:
-        """:meth:`rollout` in float64 numpy (the viapoint task's CPU engine): tip positions
+        """``rollout`` in float64 numpy (the viapoint task's CPU engine): tip positions
         ``[B, T+1, dim]`` of policies ``theta: [B, K·dim]``, from rest at ``start: [dim]``."""
         if theta.ndim != 2 or theta.shape[-1] != self.parameter_dim:
             raise ValueError(

@@ -1,13 +1,13 @@
 """Batched kinematics of any serial-chain arm from its URDF, with pytorch-kinematics.
 
-:class:`ArmKinematics` loads a URDF, extracts the serial chain from a base link to an
+``ArmKinematics`` loads a URDF, extracts the serial chain from a base link to an
 end-effector link (``pytorch_kinematics.SerialChain``; branches elsewhere in the tree, e.g.
 gripper fingers, are ignored) and gives, batched over configurations ``q: [B, n]``:
 
 * the end-effector position ``[B, 3]`` (m, in the base link's frame),
 * the geometric Jacobian ``[B, 6, n]`` (``chain.jacobian``: linear rows first),
-* both from one forward-kinematics pass (:meth:`ArmKinematics.position_and_jacobian`), the
-  call the tracking IK (:mod:`dipole_torch.models.tracking`) makes at every time step.
+* both from one forward-kinematics pass (``ArmKinematics.position_and_jacobian``), the
+  call the tracking IK (``dipole_torch.models.tracking``) makes at every time step.
 
 Everything is differentiable in ``q`` (pytorch-kinematics attaches an analytical backward to
 its forward kinematics; the Jacobian is built from those poses with torch ops), so rewards of
@@ -17,7 +17,7 @@ Joints on the chain may be revolute, continuous (unlimited revolute) or prismati
 
 Loading a vendor's file
 -----------------------
-The file is read here first (:func:`read_urdf_tree`), and pytorch-kinematics gets a copy
+The file is read here first (``read_urdf_tree``), and pytorch-kinematics gets a copy
 holding only what kinematics uses:
 
 * The links and joints must form one tree: every joint names a parent and a child link that
@@ -211,7 +211,7 @@ class UrdfTree:
     def kinematic_copy(self) -> bytes:
         """The file as pytorch-kinematics gets it: links and joints only, without the
         elements kinematics does not read (module docstring). A joint of a type
-        pytorch-kinematics lacks becomes fixed (:class:`ArmKinematics` rejects one on its
+        pytorch-kinematics lacks becomes fixed (``ArmKinematics`` rejects one on its
         chain); a movable joint without ``<axis>`` gets URDF's default x axis."""
         robot = ElementTree.Element("robot", name=self.robot_name)
         for link in self._robot.findall("link"):
@@ -255,7 +255,7 @@ class UrdfTree:
 
 
 def read_urdf_tree(path: Path) -> UrdfTree:
-    """The checked :class:`UrdfTree` of the URDF file ``path``. Raises ``ValueError`` naming
+    """The checked ``UrdfTree`` of the URDF file ``path``. Raises ``ValueError`` naming
     the file for invalid XML, an unexpanded xacro file or links and joints that are not one
     tree (naming the joint and the link)."""
     try:
@@ -294,7 +294,7 @@ class ArmKinematics:
     """Forward kinematics and Jacobians of a serial-chain arm, batched over configurations.
 
     Args:
-        urdf: path of the URDF file (see :func:`resolve_urdf_path`).
+        urdf: path of the URDF file (see ``resolve_urdf_path``).
         end_effector: name of the end-effector link (the point the task moves).
         base_link: name of the link whose frame positions are expressed in (default: the
             URDF's root link). It must be an ancestor of ``end_effector``.

@@ -1,7 +1,7 @@
 """A serial chain's kinematics in float64 numpy arrays: the viapoint task's CPU engine.
 
-:class:`NumpyChain` takes the structure of a pytorch-kinematics serial chain (any URDF loaded
-by :class:`dipole_torch.models.kinematics.ArmKinematics`) once, and then computes
+``NumpyChain`` takes the structure of a pytorch-kinematics serial chain (any URDF loaded
+by ``dipole_torch.models.kinematics.ArmKinematics``) once, and then computes
 end-effector positions and position Jacobians of a batch of configurations with a few dozen
 numpy operations a call.
 

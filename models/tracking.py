@@ -14,11 +14,11 @@ freedom take the minimum-norm joint step.
 
 ``kinematics`` is any object with ``dof``, ``joint_lower``/``joint_upper`` ``[n]``,
 ``position_and_jacobian(q[B, n]) -> ([B, 3], [B, 3, n])``, ``forward_kinematics(q) -> [B, 3]``
-and ``clamp_to_limits``: :class:`dipole_torch.models.kinematics.ArmKinematics`
+and ``clamp_to_limits``: ``dipole_torch.models.kinematics.ArmKinematics``
 (pytorch-kinematics, any URDF: ``chain.jacobian``) or
-:class:`dipole_torch.models.wam.WamKinematics` (the WAM's analytic DH path).
-:func:`track_path_numpy` is the same tracking in float64 numpy on a
-:class:`dipole_torch.models.numpy_kinematics.NumpyChain` (the viapoint task's CPU engine).
+``dipole_torch.models.wam.WamKinematics`` (the WAM's analytic DH path).
+``track_path_numpy`` is the same tracking in float64 numpy on a
+``dipole_torch.models.numpy_kinematics.NumpyChain`` (the viapoint task's CPU engine).
 """
 
 from __future__ import annotations
@@ -103,8 +103,8 @@ def track_path_numpy(
     lower: NDArray[np.float64],
     upper: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """:func:`track_path` in float64 numpy (the viapoint task's CPU engine): the same DLS
-    steps and clipping to ``[lower, upper]: [n]``, on a :class:`NumpyChain`.
+    """``track_path`` in float64 numpy (the viapoint task's CPU engine): the same DLS
+    steps and clipping to ``[lower, upper]: [n]``, on a ``NumpyChain``.
 
     Returns the end-effector path ``[B, T+1, 3]`` the arm makes for ``desired: [B, T+1, 3]``
     from ``q_start: [n]``.

@@ -1,6 +1,6 @@
 """Episodic tasks: batched torch dynamics and rewards, one file a task.
 
-Every task is an :class:`dipole_torch.tasks.base.EpisodicTask`: it maps a batch of policy parameters
+Every task is an ``dipole_torch.tasks.base.EpisodicTask``: it maps a batch of policy parameters
 ``theta: [B, D]`` to one return each, ``r: [B]``, in a single batched rollout.
 """
 

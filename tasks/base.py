@@ -16,10 +16,10 @@ class EpisodicTask(abc.ABC):
     * ``theta0: [D]`` -- the initial policy parameters (the paper's θ in Algorithm 2),
     * ``sigma_start: [D, D]`` -- the initial exploration covariance Σ_start,
     * ``reward_range: (low, high)`` -- bounds of the return; the optimizers map returns to
-      positive weights with it (see :class:`dipole_torch.RewardScale`),
+      positive weights with it (see ``dipole_torch.RewardScale``),
     * ``device`` and ``dtype`` of the rollouts,
 
-    and implement :meth:`evaluate`, a rollout batched over policies (a loop over time steps
+    and implement ``evaluate``, a rollout batched over policies (a loop over time steps
     only). The optimizer never calls the task: ``train.py`` passes ``ask()``'s parameters
     to ``evaluate`` and the returns back to ``tell``.
     """

@@ -33,12 +33,12 @@ class CartPoleTask(ControlTask):
     https://coneural.org/florian/papers/05_cart_pole.pdf). The policy is the paper's eq. 8,
     ``u = θᵀx`` with the state ``x`` itself as features, so ``D = 4``.
 
-    :meth:`evaluate` runs one episode per row of ``theta: [B, 4]``, with one of two engines
+    ``evaluate`` runs one episode per row of ``theta: [B, 4]``, with one of two engines
     (``engine``): on the CPU by default one episode at a time in Python floats, each stopping
     when it fails (``"python"``); on an accelerator, or when asked, as a single batched torch
-    rollout, a loop over time steps only (``"torch"``). The torch :meth:`step` and
-    :meth:`step_reward` drive the gymnasium environment ``dipole/CartPole-v1``
-    (:class:`dipole_torch.tasks.gym_envs.CartPoleEnv`).
+    rollout, a loop over time steps only (``"torch"``). The torch ``step`` and
+    ``step_reward`` drive the gymnasium environment ``dipole/CartPole-v1``
+    (``dipole_torch.tasks.gym_envs.CartPoleEnv``).
 
     ## Action Space
 
@@ -74,7 +74,7 @@ class CartPoleTask(ControlTask):
 
     The cart at rest at the origin and the pole at rest at a random small angle
     ``φ0 ~ U(-initial_angle, initial_angle)`` with ``initial_angle = 0.05`` rad (gymnasium's
-    range). :meth:`evaluate` draws one start per row from ``generator``; with
+    range). ``evaluate`` draws one start per row from ``generator``; with
     ``generator=None`` every row starts from the same state, drawn once from the seed
     ``default_seed``, so that ``evaluate`` is a deterministic function of ``theta``.
     ``initial_state: [4]`` or ``[B, 4]`` overrides both.
@@ -84,7 +84,7 @@ class CartPoleTask(ControlTask):
     After ``steps = 1000`` steps (the paper's horizon). A failure does not end the rollout
     early, the step reward just stays ``-1`` (see Rewards). The gymnasium
     environment instead terminates at failure and pays the remaining ``-1`` rewards at once,
-    so its undiscounted return equals :meth:`evaluate`'s.
+    so its undiscounted return equals ``evaluate``'s.
 
     ## Arguments
 
@@ -95,7 +95,7 @@ class CartPoleTask(ControlTask):
     * ``exploration_std``: standard deviations of the initial exploration, a number or ``[4]``;
       ``sigma_start = diag(exploration_std²)`` (default ``[1, 1, 20, 3]``).
     * ``default_seed``: seed of the start used when ``generator`` is ``None`` (0).
-    * ``engine``: how :meth:`evaluate` runs the episodes, ``"python"``, ``"torch"`` or
+    * ``engine``: how ``evaluate`` runs the episodes, ``"python"``, ``"torch"`` or
       ``"auto"`` (the default; see below). In detail:
 
       - ``"python"``: one episode at a time, a plain Python loop over the steps in double
@@ -209,7 +209,7 @@ class CartPoleTask(ControlTask):
         return torch.stack((x, x_dot, angle, angle_dot), dim=-1)
 
     def _step_(self, x: Tensor, x_dot: Tensor, angle: Tensor, angle_dot: Tensor, force: Tensor):
-        """:meth:`step` in place on the four ``[B]`` state variables (the rollout's hot loop).
+        """``step`` in place on the four ``[B]`` state variables (the rollout's hot loop).
 
         The equations of Florian (2007), https://coneural.org/florian/papers/05_cart_pole.pdf,
         as written in gymnasium's ``CartPole-v1``::
@@ -237,7 +237,7 @@ class CartPoleTask(ControlTask):
 
     def policy(self, theta: Tensor, state: Tensor) -> Tensor:
         """Eq. 8, ``u = θᵀx`` clipped to ``±force_limit``: ``[B, 4], [B, 4] -> [B]``. The
-        one-step form (a gymnasium policy, the tests); :meth:`evaluate` computes the same
+        one-step form (a gymnasium policy, the tests); ``evaluate`` computes the same
         in place, fused with the dynamics."""
         return (theta * state).sum(-1).clamp(-self.force_limit, self.force_limit)
 
@@ -344,8 +344,8 @@ class CartPoleTask(ControlTask):
         return x, x_dot, angle, angle_dot, alive_after[-1], upright_steps, alive_steps
 
     def _episode(self, gains: list[float], start: list[float]) -> float:
-        """One episode of the ``"python"`` engine: the equations of :meth:`_step_` and the
-        policy and rewards of :meth:`_advance_`, in Python floats, stopped at the failure."""
+        """One episode of the ``"python"`` engine: the equations of ``_step_`` and the
+        policy and rewards of ``_advance_``, in Python floats, stopped at the failure."""
         gain_x, gain_x_dot, gain_angle, gain_angle_dot = gains
         x, x_dot, angle, angle_dot = start
         if abs(x) > self.x_threshold or abs(angle) > self.angle_threshold:

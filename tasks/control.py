@@ -11,7 +11,7 @@ from torch import Tensor
 
 
 class ControlTask(EpisodicTask):
-    """An :class:`EpisodicTask` simulated from a random start state.
+    """An ``EpisodicTask`` simulated from a random start state.
 
     Subclasses set ``state_dim`` and ``default_seed`` and implement
     ``sample_initial_state(batch_size, generator) -> [batch_size, state_dim]``.
@@ -33,7 +33,7 @@ class ControlTask(EpisodicTask):
         raise NotImplementedError
 
     def _episodes(self, theta: Tensor, state: Tensor) -> Tensor:
-        """``[B]`` returns of the ``"python"`` engine: :meth:`_episode` for each row of
+        """``[B]`` returns of the ``"python"`` engine: ``_episode`` for each row of
         ``theta: [B, D]`` and ``state: [B, S]``, as a tensor of the task's dtype and device.
 
         One episode at a time: a result cannot depend on the other rows of the batch, and an

@@ -3,14 +3,14 @@
 
 | id                        | class                   | max_episode_steps | reward_threshold |
 |---------------------------|-------------------------|-------------------|------------------|
-| ``dipole/CartPole-v1``    | :class:`CartPoleEnv`    | 1000              | 950              |
-| ``dipole/MountainCar-v0`` | :class:`MountainCarEnv` | 100               | 50               |
+| ``dipole/CartPole-v1``    | ``CartPoleEnv``    | 1000              | 950              |
+| ``dipole/MountainCar-v0`` | ``MountainCarEnv`` | 100               | 50               |
 
 Each environment steps a batch of one state through its task's own torch physics
-(:meth:`dipole_torch.tasks.cartpole.CartPoleTask.step`,
-:meth:`dipole_torch.tasks.mountain_car.MountainCarTask.step`): there is no second copy of the
+(``dipole_torch.tasks.cartpole.CartPoleTask.step``,
+``dipole_torch.tasks.mountain_car.MountainCarTask.step``): there is no second copy of the
 dynamics, and a policy run in the environment earns the same undiscounted return as the task's
-:meth:`~dipole_torch.tasks.base.EpisodicTask.evaluate` from the same start (pass it with
+``evaluate`` from the same start (pass it with
 ``reset(options={"initial_state": ...})``): bit for bit as its ``engine="torch"`` rollout, and as
 its default Python episodes (double precision) but where rounding moves a trajectory across a
 threshold. Keyword arguments of ``gymnasium.make`` go to the task's constructor (``steps``,
@@ -23,7 +23,7 @@ episodes after ``N`` steps by itself; pass ``max_episode_steps=N`` to ``gymnasiu
 for ``spec.max_episode_steps`` to say so.
 
 Rendering: ``render_mode="rgb_array"`` returns each frame as an RGB ``uint8`` array
-``[400, 600, 3]``, drawn with numpy (:mod:`dipole_torch.tasks.rendering`, no extra
+``[400, 600, 3]``, drawn with numpy (``dipole_torch.tasks.rendering``, no extra
 dependency), so gymnasium's ``RecordVideo`` wrapper (which needs moviepy) and
 ``RenderCollection`` work, and so does ``render_mode="rgb_array_list"`` (``gymnasium.make``
 adds ``RenderCollection``). ``render_mode="human"`` shows the frames in a pygame window during
@@ -173,7 +173,7 @@ def _format(values: np.ndarray) -> str:
 
 def _cartpole_bounds(task: CartPoleTask) -> tuple[np.ndarray, np.ndarray]:
     """``(live, reached)``, each ``[4]``: the half-widths of the start box and the bounds on
-    every observation of an episode started in it (derivation in :class:`CartPoleEnv`)."""
+    every observation of an episode started in it (derivation in ``CartPoleEnv``)."""
     tau = task.tau
     sin_max = math.sin(task.angle_threshold)
     # l (4/3 - m_p cos²φ / M) >= l (4/3 - m_p / M), the denominator of the angular acceleration.
@@ -210,7 +210,7 @@ def _cartpole_bounds(task: CartPoleTask) -> tuple[np.ndarray, np.ndarray]:
 
 
 class CartPoleEnv(_TaskEnv):
-    r""":class:`dipole_torch.tasks.cartpole.CartPoleTask` as the gymnasium environment
+    r"""``dipole_torch.tasks.cartpole.CartPoleTask`` as the gymnasium environment
     ``dipole/CartPole-v1``.
 
     ## Description
@@ -220,7 +220,7 @@ class CartPoleEnv(_TaskEnv):
     Anderson (1983) system: a pole hinged to a cart on a frictionless track, kept upright by a
     horizontal force on the cart. The physics is the task's (gymnasium ``CartPole-v1``'s
     equations and constants, explicit Euler with ``tau = 0.02`` s), run by
-    :meth:`~dipole_torch.tasks.cartpole.CartPoleTask.step`; the rewards are the paper's.
+    ``step``; the rewards are the paper's.
 
     ## Action Space
 
@@ -260,7 +260,7 @@ class CartPoleEnv(_TaskEnv):
     ``|x| > 2.4`` m). Failure is absorbing in the task (``-1`` for every remaining step); the
     environment terminates at the failing step ``t`` and pays ``-(steps - t + 1)`` for it,
     the task's ``-1`` for that step and each remaining one, so that the undiscounted return
-    equals :meth:`~dipole_torch.tasks.cartpole.CartPoleTask.evaluate`'s, in
+    equals ``evaluate``'s, in
     ``[-steps, steps]``.
 
     ``spec.reward_threshold = 950`` (for the default 1000 steps): gymnasium's ``CartPole-v1``
@@ -287,7 +287,7 @@ class CartPoleEnv(_TaskEnv):
 
     * ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"`` (``"rgb_array_list"`` through
       ``gymnasium.make``).
-    * Every other keyword goes to :class:`~dipole_torch.tasks.cartpole.CartPoleTask`:
+    * Every other keyword goes to ``CartPoleTask``:
       ``steps`` (1000), ``force_limit`` (10 N), ``initial_angle`` (0.05 rad), ``dtype`` of the
       physics (float32), ... The task runs on the CPU.
 
@@ -352,7 +352,7 @@ class CartPoleEnv(_TaskEnv):
 
 
 class MountainCarEnv(_TaskEnv):
-    r""":class:`dipole_torch.tasks.mountain_car.MountainCarTask` as the gymnasium environment
+    r"""``dipole_torch.tasks.mountain_car.MountainCarTask`` as the gymnasium environment
     ``dipole/MountainCar-v0``.
 
     ## Description
@@ -362,7 +362,7 @@ class MountainCarEnv(_TaskEnv):
     (1998), with the paper's constants: an under-powered car in a valley must swing back and
     forth to climb out to the goal, per step ``ẋ ← clip(ẋ + α u − β cos 3x, ±0.07)``,
     ``x ← x + ẋ``, walls at ``±1.5``
-    (:meth:`~dipole_torch.tasks.mountain_car.MountainCarTask.step`).
+    (``step``).
 
     ## Action Space
 
@@ -384,7 +384,7 @@ class MountainCarEnv(_TaskEnv):
     The paper's counter paid step by step: it starts at 101, paid with the first step, and
     loses 1 per step (first step ``+100``, then ``−1``); not reaching the goal by step
     ``steps`` (100) costs one more point. Returns are ``101 − t`` at the goal on step ``t``,
-    else ``0``, as :meth:`~dipole_torch.tasks.mountain_car.MountainCarTask.evaluate`'s.
+    else ``0``, as ``evaluate``'s.
 
     ``spec.reward_threshold = 50`` (for the default 100 steps): the goal reached, on average,
     by step 51, in the first half of the horizon. It asks for what gymnasium's
@@ -408,7 +408,7 @@ class MountainCarEnv(_TaskEnv):
 
     * ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"`` (``"rgb_array_list"`` through
       ``gymnasium.make``).
-    * Every other keyword goes to :class:`~dipole_torch.tasks.mountain_car.MountainCarTask`:
+    * Every other keyword goes to ``MountainCarTask``:
       ``steps`` (100), ``goal_position`` (0.5), ``alpha``, ``beta``, ``dtype`` of the physics
       (float32), ... The task runs on the CPU.
 

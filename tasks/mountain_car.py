@@ -37,11 +37,11 @@ class MountainCarTask(ControlTask):
     full-forward / full-backward choice), so ``D = 4``. The policy is invariant to a positive
     rescaling of ``θ``.
 
-    :meth:`evaluate` runs one episode per row of ``theta: [B, 4]``, on the CPU by default one
+    ``evaluate`` runs one episode per row of ``theta: [B, 4]``, on the CPU by default one
     at a time in Python floats, each stopping at the goal (``engine="python"``), else as a
-    single batched torch rollout (``"torch"``; see ``engine`` below); the torch :meth:`step`
+    single batched torch rollout (``"torch"``; see ``engine`` below); the torch ``step``
     drives the gymnasium environment ``dipole/MountainCar-v0``
-    (:class:`dipole_torch.tasks.gym_envs.MountainCarEnv`).
+    (``dipole_torch.tasks.gym_envs.MountainCarEnv``).
 
     ## Action Space
 
@@ -65,7 +65,7 @@ class MountainCarTask(ControlTask):
 
     ## Starting State
 
-    ``x0 ~ U(−0.6, −0.4)`` (gymnasium's ``MountainCar-v0``) and ``ẋ0 = 0``. :meth:`evaluate`
+    ``x0 ~ U(−0.6, −0.4)`` (gymnasium's ``MountainCar-v0``) and ``ẋ0 = 0``. ``evaluate``
     draws one start per row from ``generator``; with ``generator=None`` every row starts from
     the same state, drawn once from the seed ``default_seed``. ``initial_state: [2]`` or
     ``[B, 2]`` overrides both.
@@ -87,10 +87,10 @@ class MountainCarTask(ControlTask):
     * ``engine``: ``"python"`` (one episode at a time in Python floats, double precision,
       stopped at the goal), ``"torch"`` (one batched rollout in ``dtype`` on ``device``) or
       ``"auto"`` (the default: ``"torch"`` on an accelerator or with ``compile``, else
-      ``"python"``), as :class:`dipole_torch.tasks.cartpole.CartPoleTask`'s.
+      ``"python"``), as ``dipole_torch.tasks.cartpole.CartPoleTask``'s.
     * ``compile``, ``chunk``: run the torch rollout in chunks of ``chunk`` (10) steps, each
       through ``torch.compile`` when ``compile`` is true (as
-      :class:`dipole_torch.tasks.cartpole.CartPoleTask`).
+      ``dipole_torch.tasks.cartpole.CartPoleTask``).
     * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
       given (``"cpu"``, float32).
 
@@ -185,7 +185,7 @@ class MountainCarTask(ControlTask):
         return torch.stack((x, velocity), dim=-1)
 
     def _step_(self, x: Tensor, velocity: Tensor, force: Tensor) -> None:
-        """:meth:`step` in place on ``x, velocity: [B]`` (the rollout's hot loop)."""
+        """``step`` in place on ``x, velocity: [B]`` (the rollout's hot loop)."""
         velocity.add_(force, alpha=self.alpha).sub_(torch.cos(3 * x), alpha=self.beta)
         velocity.clamp_(-self.max_speed, self.max_speed)
         x.add_(velocity)
@@ -202,7 +202,7 @@ class MountainCarTask(ControlTask):
 
     def policy(self, theta: Tensor, state: Tensor) -> Tensor:
         """``u = 4 · sign(θᵀφ(x))`` with ``sign(0) = +``: ``[B, 4], [B, 2] -> [B]``. The
-        one-step form (the tests); :meth:`evaluate` computes the same in place, fused with
+        one-step form (the tests); ``evaluate`` computes the same in place, fused with
         the dynamics."""
         activation = (theta * self.features(state)).sum(-1)
         return torch.where(activation >= 0, self.force, -self.force).to(state.dtype)
@@ -271,7 +271,7 @@ class MountainCarTask(ControlTask):
     ) -> tuple[Tensor, ...]:
         """``n`` steps of the rollout, policy and bookkeeping included (all ``[B]``).
 
-        The policy is :meth:`policy` factored as ``θᵀφ = x (θ0 + θ1 x + ẋ (θ2 + θ3 ẋ))``.
+        The policy is ``policy`` factored as ``θᵀφ = x (θ0 + θ1 x + ẋ (θ2 + θ3 ẋ))``.
         Cars at the goal keep moving, but their return is settled.
         """
         x, velocity, done, open_steps = (
@@ -290,8 +290,8 @@ class MountainCarTask(ControlTask):
         return x, velocity, done, open_steps
 
     def _episode(self, gains: list[float], start: list[float]) -> float:
-        """One episode of the ``"python"`` engine: the policy of :meth:`_advance_` and the
-        step of :meth:`_step_` in Python floats, stopped at the goal."""
+        """One episode of the ``"python"`` engine: the policy of ``_advance_`` and the
+        step of ``_step_`` in Python floats, stopped at the goal."""
         gain_x, gain_x2, gain_xv, gain_xv2 = gains
         x, velocity = start
         if x >= self.goal_position:

@@ -1,14 +1,14 @@
 """Frames of the classic-control tasks, drawn with numpy, and a window that shows them.
 
-* :class:`Canvas`: a small anti-aliased rasteriser (convex polygons, discs, thick line
+* ``Canvas``: a small anti-aliased rasteriser (convex polygons, discs, thick line
   segments, the ground under a curve) into an ``[H, W, 3]`` image.
-* :func:`cartpole_frame`, :func:`mountain_car_frame`: one state of
-  :class:`~dipole_torch.tasks.cartpole.CartPoleTask` or
-  :class:`~dipole_torch.tasks.mountain_car.MountainCarTask` as an RGB ``uint8`` array
+* ``cartpole_frame``, ``mountain_car_frame``: one state of
+  ``CartPoleTask`` or
+  ``MountainCarTask`` as an RGB ``uint8`` array
   ``[400, 600, 3]``, laid out and coloured as gymnasium's classic-control renderers
   (``CartPole-v1``, ``MountainCar-v0``) draw them.
-* :class:`Window`: shows frames in a pygame window, the ``render_mode="human"`` of the
-  gymnasium environments (:mod:`dipole_torch.tasks.gym_envs`); pygame is needed only there.
+* ``Window``: shows frames in a pygame window, the ``render_mode="human"`` of the
+  gymnasium environments (``dipole_torch.tasks.gym_envs``); pygame is needed only there.
 
 Drawing reads a state and returns a new array: nothing here touches the dynamics.
 
@@ -372,7 +372,7 @@ class Window:
     """A pygame window that shows ``[height, width, 3]`` frames, at most ``fps`` a second.
 
     Construction checks that pygame and a display are there (raising
-    :class:`gymnasium.error.DependencyNotInstalled` or :class:`RuntimeError` otherwise); the
+    ``gymnasium.error.DependencyNotInstalled`` or ``RuntimeError`` otherwise); the
     window opens with the first frame.
     """
 

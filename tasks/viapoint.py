@@ -55,29 +55,29 @@ class ViapointTask(EpisodicTask):
     Any serial-chain arm given as a URDF can take the WAM's place (``urdf``, ``end_effector``,
     ``initial_joints`` and a layout it can reach; see the docs' "Your own arm").
 
-    A policy is a DS-GMR trajectory (:class:`dipole_torch.models.ds_gmr.DSGMR`, Calinon et al.
+    A policy is a DS-GMR trajectory (``dipole_torch.models.ds_gmr.DSGMR``, Calinon et al.
     2012): a critically damped virtual spring-damper ``ẍ = K_P (x̂(t) − x) − K_V ẋ`` pulls the
     tip towards the attractor path ``x̂(t)`` that Gaussian mixture regression retrieves from a
     GMM over ``[t, x]`` with ``K = len(pass_times)`` learned components and, with
     ``end_at_target`` (default), one fixed final component at the target. The policy
     parameters are the learned components' spatial centres, ``θ = [μ_1^x, ..., μ_K^x]``
     (``D = 3K = 9``). The desired task-space path is then tracked by the simulated arm
-    (:func:`dipole_torch.models.tracking.track_path`: damped-least-squares differential IK on
+    (``dipole_torch.models.tracking.track_path``: damped-least-squares differential IK on
     the arm's position Jacobian, joint limits enforced), and the reward is computed on the
     end-effector path the arm actually makes. The kinematics (forward kinematics and Jacobian,
     batched over rollouts) are pytorch-kinematics'
-    (:class:`dipole_torch.models.kinematics.ArmKinematics`, ``chain.jacobian``) by default; for
+    (``dipole_torch.models.kinematics.ArmKinematics``, ``chain.jacobian``) by default; for
     the bundled WAM, ``kinematics="wam_dh"`` selects the analytic DH fast path
-    (:class:`dipole_torch.models.wam.WamKinematics`), which gives the same paths to float
+    (``dipole_torch.models.wam.WamKinematics``), which gives the same paths to float
     rounding.
 
-    :meth:`evaluate` rolls out ``theta: [B, 9]`` batched over the policies (loops over time
+    ``evaluate`` rolls out ``theta: [B, 9]`` batched over the policies (loops over time
     only), in one of two engines (``engine``):
 
     * ``"torch"``: torch operations on the task's device and dtype, differentiable in
       ``theta`` on either kinematics path;
     * ``"numpy"``: the same DS-GMR integration and DLS tracking in float64 numpy on the CPU
-      (:class:`dipole_torch.models.numpy_kinematics.NumpyChain`, built from the same
+      (``dipole_torch.models.numpy_kinematics.NumpyChain``, built from the same
       pytorch-kinematics chain), returned in the task's dtype; not differentiable. A
       learning run rolls out a few policies at a time, where eager torch pays its
       per-operation overhead whatever the batch and numpy a fraction of it
@@ -97,9 +97,9 @@ class ViapointTask(EpisodicTask):
 
     ## Observation Space
 
-    None is given to the policy (open-loop trajectory). :meth:`trajectory` returns the
-    end-effector path ``[B, T+1, 3]`` (m), :meth:`route` which alternative is nearest at each
-    pass time and :meth:`end_point_error` how far the path ends from the target.
+    None is given to the policy (open-loop trajectory). ``trajectory`` returns the
+    end-effector path ``[B, T+1, 3]`` (m), ``route`` which alternative is nearest at each
+    pass time and ``end_point_error`` how far the path ends from the target.
 
     ## Rewards
 
@@ -123,8 +123,8 @@ class ViapointTask(EpisodicTask):
     sphere keeps almost all of it. The factor is continuous (and differentiable almost
     everywhere) in θ, so that among samples that all enter an obstacle the shallower ones
     rank higher and a reward-weighted update (PoWER) climbs out; a reward of 0 inside would
-    give it no direction. :meth:`set_obstacles` / :meth:`with_obstacles` change them at run
-    time (the world changes), :meth:`blocking_obstacle` places one on a learned route.
+    give it no direction. ``set_obstacles`` / ``with_obstacles`` change them at run
+    time (the world changes), ``blocking_obstacle`` places one on a learned route.
 
     ## Starting State
 
@@ -185,7 +185,7 @@ class ViapointTask(EpisodicTask):
 
     * Eq. 9 as printed lacks the norm; we use the Euclidean distance ``‖x(t_i) − x_i^v‖``.
     * The paper simulates the arm with the MATLAB Robotics Toolbox; we use a kinematic URDF of the
-      WAM built from its public DH table (:mod:`dipole_torch.models.wam`) and pytorch-kinematics.
+      WAM built from its public DH table (``dipole_torch.models.wam``) and pytorch-kinematics.
       Only kinematics is simulated (no dynamics or torque limits): the arm follows the desired path
       unless joint limits, singularities or the workspace boundary prevent it.
     * The paper learns "the position and the activation weights of the attractors" but counts
@@ -231,7 +231,7 @@ class ViapointTask(EpisodicTask):
       is set so that the trajectory stays within the workspace of the robot").
     * Reachability, checked at construction. A start, target or viapoint beyond the arm's
       full stretch (farther from its first joint than the summed lengths of the chain's
-      link offsets, plus the travel of its prismatic joints; :meth:`NumpyChain.reach`) is a
+      link offsets, plus the travel of its prismatic joints; ``NumpyChain.reach``) is a
       ``ValueError`` naming the point and by how much it is out of reach: no posture
       reaches it, and a run would only end far from it. A target or viapoint within that
       stretch which inverse kinematics from the start posture does not reach (within
@@ -410,7 +410,7 @@ class ViapointTask(EpisodicTask):
     def _check_within_reach(self, named_points: Sequence[tuple[str, Tensor]]) -> None:
         """Raise ``ValueError`` for a point (``[3]`` m, named) that no joint values reach:
         outside the ball around the first joint whose radius is the chain's full stretch
-        (:meth:`NumpyChain.reach`)."""
+        (``NumpyChain.reach``)."""
         lower, upper = _array(self.kinematics.joint_lower), _array(self.kinematics.joint_upper)
         centre, radius = self._numpy_chain.reach(lower, upper)
         for name, point in named_points:
@@ -427,7 +427,7 @@ class ViapointTask(EpisodicTask):
 
     def _warn_if_not_reached(self, named_points: Sequence[tuple[str, Tensor]]) -> None:
         """Warn for each point (``[3]`` m, named) that inverse kinematics from ``q_start``
-        (:meth:`NumpyChain.inverse_kinematics`) ends more than ``UNREACHED_DISTANCE`` from."""
+        (``NumpyChain.inverse_kinematics``) ends more than ``UNREACHED_DISTANCE`` from."""
         lower, upper = _array(self.kinematics.joint_lower), _array(self.kinematics.joint_upper)
         points = np.stack([_array(point) for _, point in named_points])
         _, distances = self._numpy_chain.inverse_kinematics(
@@ -479,7 +479,7 @@ class ViapointTask(EpisodicTask):
         self.obstacle_radii = torch.tensor(radii, **factory)  # [J] m
 
     def with_obstacles(self, obstacles: Sequence[Mapping]) -> ViapointTask:
-        """A copy of this task with other obstacles (see :meth:`set_obstacles`); it shares
+        """A copy of this task with other obstacles (see ``set_obstacles``); it shares
         the arm and the layout, so making it costs no inverse kinematics."""
         task = copy.copy(self)
         task.set_obstacles(obstacles)
@@ -514,7 +514,7 @@ class ViapointTask(EpisodicTask):
         pass time, about 10 cm from the first and last viapoints near the start and target).
 
         Returns:
-            The obstacle (``{"centre": [3], "radius": radius}``, for :meth:`set_obstacles`)
+            The obstacle (``{"centre": [3], "radius": radius}``, for ``set_obstacles``)
             and a description, e.g. ``"a sphere of radius 8 cm on the far viapoint at
             t = 1.2 s (route below / far / above)"``.
         """
@@ -568,7 +568,7 @@ class ViapointTask(EpisodicTask):
         return self.engine == "numpy" or (self.device.type == "cpu" and not needs_gradient)
 
     def _trajectory_numpy(self, theta: Tensor) -> Tensor:
-        """:meth:`trajectory` in the numpy engine (float64), returned in the task's dtype."""
+        """``trajectory`` in the numpy engine (float64), returned in the task's dtype."""
         goal = _array(self.target) if self.end_at_target else None
         desired = self.dynamics.rollout_numpy(_array(theta), _array(self.start), goal)
         path = track_path_numpy(
@@ -680,7 +680,7 @@ class ViapointTask(EpisodicTask):
         a few ticks per axis, and the legend below the axes (paths in the left column,
         viapoints, obstacle, start and target in the right one), the figure growing
         downwards with the number of entries. It is a bare
-        :class:`matplotlib.figure.Figure` on the Agg canvas (no pyplot state, no display):
+        ``matplotlib.figure.Figure`` on the Agg canvas (no pyplot state, no display):
         TensorBoard's ``add_figure`` renders and closes it, or call ``plt.close(figure)`` /
         drop the reference.
         """

@@ -1,14 +1,14 @@
 """The Dirichlet-process Gaussian mixture (IGMM) over y = [θ, w] and its Gibbs samplers.
 
-* :class:`DPSampler` — one sampler object: Neal's (2000) Algorithm 8 (the paper's Algorithm 1)
+* ``DPSampler`` — one sampler object: Neal's (2000) Algorithm 8 (the paper's Algorithm 1)
   with fresh or re-used auxiliary components, or the slice sampler; eq. 6's reward weighting.
-* :class:`DPMixtureState` — one state of the chain (labels, component parameters, H).
-* :mod:`~dipole_torch.dp.labels` — eq. 5/6's label logits; :mod:`~dipole_torch.dp.neal8`,
-  :mod:`~dipole_torch.dp.reuse`, :mod:`~dipole_torch.dp.slice` — the label passes;
-  :mod:`~dipole_torch.dp.conditionals` — the μ and Σ conditionals and the point estimate;
-  :mod:`~dipole_torch.dp.reward_weights` — r_c of eq. 6.
+* ``DPMixtureState`` — one state of the chain (labels, component parameters, H).
+* ``labels`` — eq. 5/6's label logits; ``neal8``,
+  ``reuse``, ``slice`` — the label passes;
+  ``conditionals`` — the μ and Σ conditionals and the point estimate;
+  ``reward_weights`` — r_c of eq. 6.
 
-All DP mathematics runs in float64 (:data:`dipole_torch.gaussian.DTYPE`).
+All DP mathematics runs in float64 (``dipole_torch.gaussian.DTYPE``).
 """
 
 from dipole_torch.dp.conditionals import posterior_point_estimate, resample_parameters

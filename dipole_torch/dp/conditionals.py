@@ -3,9 +3,9 @@ and the point estimate a clustering ends with.
 
 The prior H is non-linked: μ ~ N(μ0, Σ0) and Σ ~ IW(ν0, Ψ0) independently, and the
 likelihood uses Σ + R (R the regularisation, the paper's heuristic "to avoid degeneracies").
-Hence μ | Σ, y is Normal (:func:`mean_conditional`), Σ | μ, y has no closed form once
+Hence μ | Σ, y is Normal (``mean_conditional``), Σ | μ, y has no closed form once
 R ≠ 0 and is sampled by an independence Metropolis-Hastings step
-(:func:`covariance_step`).
+(``covariance_step``).
 
 Every sum over points is taken about a centre (the prior mean, the component mean) rather
 than from raw sums: at offsets of 1e6 the raw sums carry no digits of a spread of 1e-2.
@@ -77,7 +77,7 @@ def mean_conditional(
     Args:
         covs: ``[K, D, D]`` component covariances Σ (regularisation included).
         counts: ``[K]`` points per component.
-        residuals: ``[K, D]`` Σ_{i in c} (y_i − μ0) (:func:`residual_sums` about μ0).
+        residuals: ``[K, D]`` Σ_{i in c} (y_i − μ0) (``residual_sums`` about μ0).
 
     Returns:
         ``[K, D]`` the location and ``[K, D, D]`` the Cholesky factor of the precision P.
@@ -181,8 +181,8 @@ def resample_parameters(
     counts: Tensor | None = None,
 ) -> DPMixtureState:
     """Algorithm 8's step 2: every component's (μ, Σ) redrawn given its points, batched over
-    K, by ``steps`` alternations of the exact μ | Σ, y draw (:func:`mean_conditional`) and
-    the Σ | μ, y Metropolis-Hastings step (:func:`covariance_step`).
+    K, by ``steps`` alternations of the exact μ | Σ, y draw (``mean_conditional``) and
+    the Σ | μ, y Metropolis-Hastings step (``covariance_step``).
 
     Args:
         y: ``[N, D]`` data (float64).
@@ -215,7 +215,7 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
     DIPOLE explores with each component's covariance; a single inverse-Wishart draw from five
     points in ten dimensions is too erratic for that, its conditional mean is not. E[Σ | μ, y]
     is that of the conjugate, unregularised conditional IW(ν0 + n, Ψ0 + S), plus R (a point
-    estimate; the chain's own Σ step is exact, see :func:`resample_parameters`).
+    estimate; the chain's own Σ step is exact, see ``resample_parameters``).
 
     Args:
         y: ``[N, D]`` data.

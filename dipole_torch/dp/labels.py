@@ -7,9 +7,9 @@ held fixed. Point i joins an occupied component c or one of m auxiliary componen
 
 w_c = n_{-i,c} for an occupied component and α/m for an auxiliary one (eq. 5; eq. 6 with
 the reward weight r_c, log r_c = 0 without it); the common factor b/(n − 1 + α) cancels.
-:func:`component_scores` is the reward-weighted likelihood, computed for many points at once
-and cached; :func:`label_logits` adds the weight. Every pass (Algorithm 8's fresh auxiliary
-draws in :mod:`dipole_torch.dp.neal8`, the re-used ones in :mod:`dipole_torch.dp.reuse`)
+``component_scores`` is the reward-weighted likelihood, computed for many points at once
+and cached; ``label_logits`` adds the weight. Every pass (Algorithm 8's fresh auxiliary
+draws in ``dipole_torch.dp.neal8``, the re-used ones in ``dipole_torch.dp.reuse``)
 builds its logits with these two functions.
 """
 
@@ -42,7 +42,7 @@ def component_scores(log_likelihood: Tensor, log_r: Tensor) -> Tensor:
 
 
 def label_logits(log_weight, scores):
-    """Eq. 5/6's label logits: log w_c + ``scores`` (:func:`component_scores`), with
+    """Eq. 5/6's label logits: log w_c + ``scores`` (``component_scores``), with
     ``log_weight`` = log n_{-i,c} for occupied components and log(α/m) for auxiliary ones.
     Tensors, numpy arrays and floats alike (the per-point passes run in numpy)."""
     return log_weight + scores
@@ -118,7 +118,7 @@ Auxiliary = Callable[[int, int], AuxiliaryDraws]  # (start, stop) -> draws for t
 
 
 def starting_scores(y: Tensor, state: DPMixtureState, log_r: Tensor) -> Tensor:
-    """``[N, K]`` :func:`component_scores` of every point under the sweep's starting
+    """``[N, K]`` ``component_scores`` of every point under the sweep's starting
     components (fixed during the pass, as in Algorithm 8: one batched call)."""
     return component_scores(gaussian_log_prob(y[:, None, :], state.means, state.covariances), log_r)
 
@@ -127,9 +127,9 @@ def pass_start(
     y: Tensor, state: DPMixtureState, log_r: Tensor
 ) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
     """What the numpy label passes start from: ``labels`` and ``counts`` as lists,
-    ``score [N, capacity]`` (:func:`component_scores`; columns of components opened in the
+    ``score [N, capacity]`` (``component_scores``; columns of components opened in the
     sweep are filled only for the points still to come) and ``log_counts [capacity]`` (−inf
-    for empty slots), with room for ``capacity`` components (:func:`open_slot` grows it)."""
+    for empty slots), with room for ``capacity`` components (``open_slot`` grows it)."""
     n, k = y.shape[0], state.num_components
     labels = state.labels.tolist()
     counts = [0] * k  # (counted in Python: a bincount and its read cost more at these sizes)

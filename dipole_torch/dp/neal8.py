@@ -1,17 +1,17 @@
 """A sweep of Neal's (2000) Algorithm 8, the paper's Algorithm 1 (eqs. 5 and 6).
 
-:func:`neal8_sweep`: the labels (m auxiliary components from H for every point, or re-used
-ones, :mod:`dipole_torch.dp.reuse`), then the components' parameters
-(:func:`~dipole_torch.dp.conditionals.resample_parameters`), then H. Its label pass with fresh
+``neal8_sweep``: the labels (m auxiliary components from H for every point, or re-used
+ones, ``dipole_torch.dp.reuse``), then the components' parameters
+(``resample_parameters``), then H. Its label pass with fresh
 auxiliary draws has two implementations that make the same draws from the same uniforms:
 
-* :func:`label_pass_numpy` on the CPU: the per-point work in numpy and Python scalars (a
+* ``label_pass_numpy`` on the CPU: the per-point work in numpy and Python scalars (a
   handful of numpy calls a point; torch's per-op overhead was many times that);
-* :func:`label_pass_sync_free` on other devices: tensor ops that never wait for the device
+* ``label_pass_sync_free`` on other devices: tensor ops that never wait for the device
   within a chunk of points (one sync a chunk).
 
 The auxiliary draws and their likelihoods are made in chunks of points (at most
-:data:`AUX_CHUNK_BYTES` of ``[chunk, m, D, D]`` covariances, so memory does not grow with
+``AUX_CHUNK_BYTES`` of ``[chunk, m, D, D]`` covariances, so memory does not grow with
 N·m), and a component opened at point i gets its likelihood column only for the points
 after i.
 """
@@ -69,13 +69,13 @@ def neal8_sweep(
 
     1. Every label c_i is redrawn with eq. 5's probabilities (eq. 6 when
        ``sampler.reward_weighted``): ∝ r_c n_{-i,c} N(y_i; μ_c, Σ_c) for occupied components
-       and ∝ r_c (α/m) N(y_i; μ_c, Σ_c) for m auxiliary components (:mod:`~dipole_torch.dp.labels`);
+       and ∝ r_c (α/m) N(y_i; μ_c, Σ_c) for m auxiliary components (``labels``);
        a singleton's own parameters fill the first auxiliary slot. r_c comes from the mixture
        at the start of the sweep, clamped to the range of the data's reward weights
-       ``y[:, -1]`` (:func:`~dipole_torch.dp.reward_weights.reward_weights`).
+       ``y[:, -1]`` (``reward_weights``).
     2. Every occupied component's parameters are redrawn from their conditionals.
     3. With ``sampler.update_prior``, H's hyperparameters are redrawn given the components
-       (:meth:`~dipole_torch.NormalInverseWishartPrior.updated`, anchored on
+       (``updated``, anchored on
        ``sampler.prior``); otherwise H stays fixed.
 
     Args:
@@ -230,7 +230,7 @@ def label_pass_sync_free(
     """Algorithm 8's step 1 with tensor ops only: the host never waits for the device
     inside a chunk of points (one sync a chunk, to grow the slot capacity).
 
-    Same arguments, draws and returns as :func:`label_pass_numpy`. Every branch of the
+    Same arguments, draws and returns as ``label_pass_numpy``. Every branch of the
     per-point step becomes a masked write: all components live in ``capacity`` slots (empty
     ones have count 0, hence probability 0), and the likelihood column of the chunk's points
     under the chosen auxiliary component is computed at every point and written only where a
@@ -288,7 +288,7 @@ def _sync_free_step(
     log_aux_prior: float,
 ) -> None:
     """Relabel point i (row r of its chunk) in place, branch-free; see
-    :func:`label_pass_sync_free`. ``labels [N]``, ``counts [S]``, ``score [C, S]`` and the
+    ``label_pass_sync_free``. ``labels [N]``, ``counts [S]``, ``score [C, S]`` and the
     slots' ``means [S, D]``, ``covs``/``tril [S, D, D]``, ``slot_log_r [S]`` are updated."""
     capacity = counts.shape[0]
     c = labels[i : i + 1]  # [1]: a view, not a host int

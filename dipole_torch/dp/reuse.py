@@ -50,7 +50,7 @@ def label_pass_reuse(
         state: the sweep's starting state (labels ``[N]``, K components).
         log_r: ``[K]`` log r_c of the starting components (zeros unweighted).
         fresh: ``count -> AuxiliaryDraws`` with ``count`` draws from H and their logits
-            ``[N, count]`` at every point (:meth:`AuxiliaryDraws.shared`).
+            ``[N, count]`` at every point (``AuxiliaryDraws.shared``).
         uniforms: ``[N]`` the label draws' uniforms.
         slot_uniforms: ``[N]`` the uniforms that choose the slot a singleton's parameters
             replace.

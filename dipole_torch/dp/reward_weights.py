@@ -57,7 +57,7 @@ def reward_weights(
 
     The reward is the last coordinate of y = [θ, r]; r_c = E[r | θ = μ_c^θ] by Gaussian mixture
     regression on ``mixture`` (the IGMM). Rewards must already be positive weights (see
-    :class:`dipole_torch.RewardScale`).
+    ``dipole_torch.RewardScale``).
 
     The regression extrapolates linearly away from the data (at a mean drawn from H it can
     predict far above the best reward, or below zero), so the prediction is clamped:
@@ -72,7 +72,7 @@ def reward_weights(
 
     Args:
         mixture: the IGMM over ``[θ, r]`` (event dim D + 1), or its prepared
-            :class:`RewardRegression`.
+            ``RewardRegression``.
         query_means: ``[..., D + 1]`` component means whose θ-part is queried.
         floor: optional absolute lower bound on r_c.
         weights: ``[N]`` the data's reward weights (the last column of y).
@@ -93,7 +93,7 @@ def reward_weights(
 def _clamp_bounds(
     regression: RewardRegression, predicted: Tensor, floor: float | None, weights: Tensor | None
 ) -> tuple[Tensor, Tensor | None]:
-    """The 0-d bounds of :func:`reward_weights`' clamp (``high`` None without ``weights``).
+    """The 0-d bounds of ``reward_weights``' clamp (``high`` None without ``weights``).
 
     They depend on the mixture and the data only, not on the queries: a sweep queries the
     same regression twice (its components, then the auxiliary draws), so they are memoised

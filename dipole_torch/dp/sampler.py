@@ -23,9 +23,9 @@ class DPSampler:
     """Gibbs sampler of the DP Gaussian mixture, with DIPOLE's reward weighting (eq. 6).
 
     The model: G ~ DP(α, H), (μ_i, Σ_i) ~ G, y_i ~ N(μ_i, Σ_i + R), with H the non-linked
-    :class:`~dipole_torch.NormalInverseWishartPrior` and R its regularisation. A sweep draws
+    ``NormalInverseWishartPrior`` and R its regularisation. A sweep draws
     the labels (``method``), then every component's parameters from their conditionals
-    (:func:`~dipole_torch.dp.conditionals.resample_parameters`), then, with
+    (``resample_parameters``), then, with
     ``update_prior``, H's hyperparameters (Algorithm 1's "update priors").
 
     Args:
@@ -44,8 +44,8 @@ class DPSampler:
         auxiliary: ``"fresh"``, Algorithm 8's m draws from H for every point (the paper's);
             ``"reuse"``, one set of m a sweep, a slot redrawn when a point takes it (Favaro
             & Teh 2013, exact too; CPU only).
-        method: ``"neal8"``, label by label (:func:`~dipole_torch.dp.neal8.neal8_sweep`);
-            ``"slice"``, every label at once (:func:`~dipole_torch.dp.slice.slice_sweep`;
+        method: ``"neal8"``, label by label (``neal8_sweep``);
+            ``"slice"``, every label at once (``slice_sweep``;
             exact, for large N and GPUs; eq. 5 only, ``m`` and ``auxiliary`` unused).
 
     Example:
@@ -111,7 +111,7 @@ class DPSampler:
     ) -> DPMixtureState:
         """A chain's first state on ``y: [N, D]``: ``"single"``, Algorithm 1's one component
         with the data's mean and covariance; ``"sequential"``, labels from one sequential
-        Chinese-restaurant pass (:func:`~dipole_torch.dp.state.sequential_labels`: for a
+        Chinese-restaurant pass (``sequential_labels``: for a
         large, fresh data set, where single-site moves split one component too slowly)."""
         check_choice(init, INITS, "init")
         if init == "single":
@@ -119,17 +119,17 @@ class DPSampler:
         return DPMixtureState.sequential(y, self.prior, self.alpha, generator)
 
     def to_chain(self, state: DPMixtureState) -> Chain:
-        """What :meth:`sweep` carries from ``state``: the state itself for Algorithm 8, a
-        :class:`~dipole_torch.dp.slice.SliceChain` (stick labels) for the slice sampler."""
+        """What ``sweep`` carries from ``state``: the state itself for Algorithm 8, a
+        ``SliceChain`` (stick labels) for the slice sampler."""
         return SliceChain.from_state(state) if self.method == "slice" else state
 
     @staticmethod
     def to_state(chain: Chain) -> DPMixtureState:
-        """The :class:`DPMixtureState` of a chain (contiguous labels, occupied components)."""
+        """The ``DPMixtureState`` of a chain (contiguous labels, occupied components)."""
         return chain.state() if isinstance(chain, SliceChain) else chain
 
     def sweep(self, y: Tensor, chain: Chain, generator: torch.Generator | None = None) -> Chain:
-        """One sweep from ``chain`` (:meth:`to_chain`) on ``y: [N, D]`` (float64)."""
+        """One sweep from ``chain`` (``to_chain``) on ``y: [N, D]`` (float64)."""
         if self.method == "slice":
             return slice_sweep(y, chain, self, generator)
         return neal8_sweep(y, chain, self, generator)
@@ -142,7 +142,7 @@ class DPSampler:
         state: DPMixtureState | None = None,
         init: str = "single",
     ) -> DPMixtureState:
-        """``num_sweeps`` sweeps on ``y`` from ``state`` (or from :meth:`start` with
+        """``num_sweeps`` sweeps on ``y`` from ``state`` (or from ``start`` with
         ``init``); the last state.
 
         Args:
@@ -150,7 +150,7 @@ class DPSampler:
             num_sweeps: sweeps to run (≥ 1).
             generator: source of all randomness.
             state: where the chain starts (``state.labels: [N]``); overrides ``init``.
-            init: ``"single"`` or ``"sequential"`` (see :meth:`start`).
+            init: ``"single"`` or ``"sequential"`` (see ``start``).
         """
         check_matrix_shape(y, (-1, self.prior.dim), "y")
         check_finite(y, "y")

@@ -2,9 +2,9 @@
 sampler of Walker (2007) with the blocked updates of Kalli, Griffin & Walker (2011), "Slice
 sampling mixture models", Statistics and Computing 21.
 
-The model is the one Algorithm 8 (:class:`~dipole_torch.dp.sampler.DPSampler`) samples
+The model is the one Algorithm 8 (``DPSampler``) samples
 without reward weighting: G ~ DP(α, H), (μ_i, Σ_i) ~ G, y_i ~ N(μ_i, Σ_i + R), with H the
-(non-conjugate) :class:`~dipole_torch.prior.NormalInverseWishartPrior`. Written with sticks,
+(non-conjugate) ``NormalInverseWishartPrior``. Written with sticks,
 G = Σ_j w_j δ_{θ_j}, w_j = v_j Π_{l<j} (1 − v_l), v_j ~ Beta(1, α), θ_j ~ H, and with one slice
 variable per point, u_i | z_i ~ U(0, w_{z_i}), the joint density is
 
@@ -14,7 +14,7 @@ and integrating u_i out gives back P(z_i = j) = w_j. Given the slices only the f
 sticks with w_j > min_i u_i can hold a point, so a sweep needs finitely many. A sweep:
 
 1. the occupied atoms | their points: Algorithm 8's step 2
-   (:func:`dipole_torch.dp.conditionals.resample_parameters`, the Σ step with its
+   (``dipole_torch.dp.conditionals.resample_parameters``, the Σ step with its
    Metropolis-Hastings correction for R), then H | the occupied atoms when H is updated;
 2. the sticks | labels, u integrated out: v_j ~ Beta(1 + n_j, α + Σ_{l>j} n_l);
 3. the slices | sticks, labels: u_i = w_{z_i} · U(0, 1];
@@ -30,7 +30,7 @@ sampler for large data sets and for GPUs. Per sweep it mixes more slowly than Al
 (the labels see the sticks' weights, not the clusters' sizes), and the reward weighting of
 eq. 6 is not defined for it: DIPOLE's own clusterings stay with Algorithm 8, the paper's
 sampler. The labels are stick indices, whose order the sticks' conditionals depend on; a
-:class:`SliceChain` keeps them between sweeps, and :meth:`SliceChain.state` makes them
+``SliceChain`` keeps them between sweeps, and ``SliceChain.state`` makes them
 contiguous.
 """
 
@@ -77,12 +77,12 @@ class SliceChain:
 
     @classmethod
     def from_state(cls, state: DPMixtureState) -> SliceChain:
-        """Start a chain from a :class:`~dipole_torch.dp.state.DPMixtureState` (its
+        """Start a chain from a ``DPMixtureState`` (its
         component c on stick c)."""
         return cls(state.labels, state.means, state.covariances, state.prior)
 
     def state(self) -> DPMixtureState:
-        """The occupied sticks as a :class:`DPMixtureState` (labels contiguous, in stick
+        """The occupied sticks as a ``DPMixtureState`` (labels contiguous, in stick
         order)."""
         k = self.means.shape[0]
         occupied = torch.bincount(self.labels, minlength=k) > 0
@@ -170,7 +170,7 @@ def slice_sweep(
 
 def _log_beta(a: Tensor, b: Tensor, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
     """``(log v, log(1 − v))`` for v ~ Beta(a, b), elementwise, from two gamma draws
-    (``torch._standard_gamma`` takes the generator; :class:`torch.distributions.Beta` does
+    (``torch._standard_gamma`` takes the generator; ``torch.distributions.Beta`` does
     not)."""
     where = generator.device if generator is not None else a.device
     x = torch._standard_gamma(_to(a, where), generator=generator)

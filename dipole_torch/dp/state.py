@@ -80,7 +80,7 @@ class DPMixtureState:
         cls, y: Tensor, labels: Tensor, prior: NormalInverseWishartPrior
     ) -> DPMixtureState:
         """A state with the given partition (any integer numbering) and each component at its
-        conditional posterior mean (:func:`~dipole_torch.dp.conditionals.posterior_point_estimate`),
+        conditional posterior mean (``posterior_point_estimate``),
         e.g. to warm-start a chain."""
         y = y.to(DTYPE)
         labels = torch.unique(labels, return_inverse=True)[1].to(y.device)
@@ -99,7 +99,7 @@ class DPMixtureState:
         alpha: float,
         generator: torch.Generator | None,
     ) -> DPMixtureState:
-        """A state from one sequential Chinese-restaurant pass (:func:`sequential_labels`)."""
+        """A state from one sequential Chinese-restaurant pass (``sequential_labels``)."""
         return cls.from_labels(y, sequential_labels(y, prior, alpha, generator), prior)
 
     def state_dict(self) -> dict:

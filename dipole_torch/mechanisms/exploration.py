@@ -2,9 +2,9 @@
 the success rule of the (1+1)-CMA-ES (the default).
 
 Both classes have one interface (as pycma's step-size adaptations do, the "off" case being a
-class whose update does nothing): :meth:`observe` sees every told batch before its samples
-are archived, :meth:`starting_covariance` gives a new policy its exploration from its DP
-component's posterior covariance, and :attr:`keeps_covariance` says whether a policy's
+class whose update does nothing): ``observe`` sees every told batch before its samples
+are archived, ``starting_covariance`` gives a new policy its exploration from its DP
+component's posterior covariance, and ``keeps_covariance`` says whether a policy's
 exploration lives on from clustering to clustering.
 """
 
@@ -159,5 +159,5 @@ class SuccessRule:
 
 
 def make_exploration(kind: str, dim: int) -> SuccessRule | PosteriorExploration:
-    """``"success"`` → :class:`SuccessRule`, ``"clustering"`` → :class:`PosteriorExploration`."""
+    """``"success"`` → ``SuccessRule``, ``"clustering"`` → ``PosteriorExploration``."""
     return SuccessRule(dim) if kind == "success" else PosteriorExploration()

@@ -11,8 +11,8 @@ A probe worse than both ends shows a valley between them. Two uses:
 * Every fourth clustering, each active policy is probed against its nearest neighbour
   (``pair_points`` probes along the way); of two on one hill the worse goes.
 
-Probes are evaluated at the next ask (owner :data:`~dipole_torch.archive.PROBE`: they never
-enter the archive) and judged at the tell after it. :class:`NoVetting` is the "off" case.
+Probes are evaluated at the next ask (owner ``PROBE``: they never
+enter the archive) and judged at the tell after it. ``NoVetting`` is the "off" case.
 """
 
 from __future__ import annotations
@@ -311,7 +311,7 @@ def make_vetting(
     max_policies: int | None,
     cluster_every: int,
 ) -> NoVetting:
-    """:class:`HillValley` with ``hill_valley``, else :class:`NoVetting`."""
+    """``HillValley`` with ``hill_valley``, else ``NoVetting``."""
     if not hill_valley:
         return NoVetting()
     return HillValley(dim, device, pair_points, max_policies, cluster_every)

@@ -1,20 +1,20 @@
 """What a clustering does to the policies: which samples it sees, where its chain starts, and
 how its components become policies.
 
-* :class:`ReplaceMatching` — the paper: the IGMM's components *are* the policies. Every
+* ``ReplaceMatching`` — the paper: the IGMM's components *are* the policies. Every
   clustering sees all kept samples, starts from the last clustering's components (at the
   policies' current means) and its components replace the policies.
-* :class:`OverlapMatching` — the default: a policy lives on across clusterings (its
+* ``OverlapMatching`` — the default: a policy lives on across clusterings (its
   exploration, its success rate, whether it retired). A clustering sees the active policies'
   samples and the scouts, starts with one component per active policy and one per scout, and
   a component continues the old policy that owns most of its samples (matched greedily,
-  largest overlap first, :func:`match_by_overlap`); the other components become new
+  largest overlap first, ``match_by_overlap``); the other components become new
   policies, the best first, while fewer than ``max_policies`` are active — or candidates for
   the hill-valley test. Old policies left without a component were merged by the DP and are
   dropped.
 
 The first clustering, of the n0 initial samples, makes its components the policies either way
-(:func:`adopt_components`).
+(``adopt_components``).
 """
 
 from __future__ import annotations
@@ -104,7 +104,7 @@ class ReplaceMatching:
         self.adopted(search, adopt_components(search, state))
 
     def adopted(self, search: Dipole, components: Tensor) -> None:
-        """After :func:`adopt_components`: policy k is component ``components[k]``."""
+        """After ``adopt_components``: policy k is component ``components[k]``."""
         search.policy_set.component = components
 
 

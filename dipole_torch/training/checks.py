@@ -3,7 +3,7 @@
 Types are checked when Hydra composes the config against the schemas (OmegaConf names the
 key); Hydra refuses an unknown task or algorithm, listing the available ones. What remains
 (ranges, whether a device exists, a checkpoint that does not fit) is checked here, by the
-optimizers' and tasks' constructors, and on resume: :func:`reported` turns each into one
+optimizers' and tasks' constructors, and on resume: ``reported`` turns each into one
 line on stderr naming the key and the value, and exit status 2, with no traceback.
 """
 

@@ -1,9 +1,9 @@
 """``train.py``'s config: the run's settings, the task and algorithm schemas, their
 registration in Hydra's ConfigStore and the ``--help`` page.
 
-``configs/config.yaml`` extends :class:`Config`; ``configs/task/<name>.yaml`` extends the
+``configs/config.yaml`` extends ``Config``; ``configs/task/<name>.yaml`` extends the
 task's schema ``dipole_torch_task_<name>`` (its ``name``, ``trials`` and ``n0``, and ``env``:
-the task's constructor, :func:`~dipole_torch.training.schemas.builds`); ``configs/algo/<name>.yaml``
+the task's constructor, ``builds``); ``configs/algo/<name>.yaml``
 extends ``dipole_torch_algo_<name>``. A task of your own extends ``dipole_torch_task``
 (``env`` untyped: any ``_target_`` with its own arguments).
 """
@@ -87,7 +87,7 @@ class ViapointBlock:
 
 
 def _task(name: str, target: str, module: str, exclude=(), extra=()) -> type:
-    """The schema of task ``name``: :class:`TaskConfig` with ``env`` built from the class."""
+    """The schema of task ``name``: ``TaskConfig`` with ``env`` built from the class."""
     cls = getattr(__import__(module, fromlist=[target]), target)
     env = builds(
         cls,
@@ -278,7 +278,7 @@ def help_text(config: str) -> str:
 
 
 def print_help(argv: list[str], config_dir: str) -> None:
-    """Answer ``--help`` with :func:`help_text` and the config the other arguments compose
+    """Answer ``--help`` with ``help_text`` and the config the other arguments compose
     (one compose; Hydra's own ``--help`` composes the config once per config group)."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf

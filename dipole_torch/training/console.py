@@ -49,7 +49,7 @@ class Progress:
 
     def update(self, trials: int, added: int, row: dict) -> None:
         """After a batch: ``trials`` done, ``added`` of them in this batch, ``row`` the
-        iteration's scalars (:meth:`~dipole_torch.training.board.Board.log_iteration`)."""
+        iteration's scalars (``log_iteration``)."""
         best, policies = row["best_so_far"], row["num_policies"]
         if self.bar is not None:
             self.bar.update(added)

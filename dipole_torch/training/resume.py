@@ -1,7 +1,7 @@
 """Checkpoints of a training run, and resuming one exactly.
 
 A checkpoint (``checkpoint.pt``, written atomically with an integrity digest by
-:func:`dipole_torch.checkpoint.atomic_save`) holds the optimizer's state, the episode
+``dipole_torch.checkpoint.atomic_save``) holds the optimizer's state, the episode
 generator's, the history, the config as resolved YAML and the overrides of the command that
 started the run. ``resume=<path>`` loads it safely, checks it against the config (naming the
 keys that must match and printing the command that resumes the run as it ran), continues in

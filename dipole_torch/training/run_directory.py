@@ -1,11 +1,11 @@
 """A run's directory: one writer at a time, and no temporaries left by a killed one.
 
-* :func:`lock_run_directory` holds an exclusive, non-blocking ``fcntl.flock`` on a lock file
+* ``lock_run_directory`` holds an exclusive, non-blocking ``fcntl.flock`` on a lock file
   in a run's directory while a process writes there; a second process (a resume started
-  while the run still goes on) gets :class:`RunDirectoryLocked` instead of writing the same
+  while the run still goes on) gets ``RunDirectoryLocked`` instead of writing the same
   files. The operating system drops the lock when its holder exits or dies (``kill -9``
   included), so a lock is never left stale.
-* :func:`remove_stale_temporaries` deletes what a writer killed mid-write left behind.
+* ``remove_stale_temporaries`` deletes what a writer killed mid-write left behind.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ __all__ = ["RunDirectoryLocked", "lock_run_directory", "remove_stale_temporaries
 
 
 class RunDirectoryLocked(CheckpointError):
-    """Another process holds the lock of a run's directory (see :func:`lock_run_directory`)."""
+    """Another process holds the lock of a run's directory (see ``lock_run_directory``)."""
 
 
 def remove_stale_temporaries(directory: str | os.PathLike, names: Iterable[str]) -> list[Path]:

@@ -1,8 +1,8 @@
 """The structured configs (Hydra schemas) of ``train.py``, generated from the code they build.
 
 Each default is stated once, where the object is defined: a task's in its constructor's
-signature, DIPOLE's in :class:`~dipole_torch.DipoleOptions`, PoWER's in
-:class:`~dipole_torch.Power`'s signature. :func:`builds` turns a signature (or a dataclass)
+signature, DIPOLE's in ``DipoleOptions``, PoWER's in
+``Power``'s signature. ``builds`` turns a signature (or a dataclass)
 into a dataclass with the same names, defaults and OmegaConf-checkable types, and the help
 of each field from the docstring's ``Args:`` / ``Attributes:`` section (or a gymnasium-style
 ``## Arguments`` list), as hydra-zen's ``builds`` does, plus the help. The YAML files of
@@ -83,7 +83,7 @@ def builds(
 
 
 def field_help(schema: type) -> dict[str, str]:
-    """``{field: help}`` of a schema made by :func:`builds` or written with ``_field``."""
+    """``{field: help}`` of a schema made by ``builds`` or written with ``_field``."""
     return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(schema)}
 
 

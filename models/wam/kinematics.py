@@ -21,9 +21,9 @@ with joint limits (Barrett's, as in the ROS ``wam_description``) lower
 rad. The base frame is the DH frame 0 (at the shoulder, z up); the end effector ``wam_tool`` is
 the tool flange, 0.06 m past the wrist centre. Kinematics only: no masses, no geometry.
 
-The viapoint task runs any URDF through pytorch-kinematics (:class:`dipole_torch.models.
-kinematics.ArmKinematics`), the WAM included (``kinematics: pytorch_kinematics``, the default).
-:class:`WamKinematics` is the opt-in fast path for this arm (``kinematics: wam_dh``): the same
+The viapoint task runs any URDF through pytorch-kinematics (``dipole_torch.models.
+kinematics.ArmKinematics``), the WAM included (``kinematics: pytorch_kinematics``, the default).
+``WamKinematics`` is the opt-in fast path for this arm (``kinematics: wam_dh``): the same
 interface, with positions and position Jacobians computed from the DH table directly
 (``tests/test_wam.py`` checks it against the pytorch-kinematics chain to 1e-7 m). Its speed-up
 is measured by ``benchmarks/bench_rollout.py`` (numbers in the docs' benchmark pages).
@@ -50,10 +50,10 @@ DH_D = (0.0, 0.0, 0.55, 0.0, 0.3, 0.0, 0.06)  # m
 class WamKinematics(ArmKinematics):
     """The WAM's kinematics with the analytic DH fast path, batched over configurations.
 
-    An :class:`~dipole_torch.models.kinematics.ArmKinematics` of ``wam7.urdf`` (base ``wam_base``,
-    end effector ``wam_tool``) whose :meth:`forward_kinematics` and :meth:`position_and_jacobian`
-    use the DH table instead of the pytorch-kinematics chain; :meth:`jacobian` (6 rows) and
-    :attr:`chain` stay pytorch-kinematics'.
+    An ``ArmKinematics`` of ``wam7.urdf`` (base ``wam_base``,
+    end effector ``wam_tool``) whose ``forward_kinematics`` and ``position_and_jacobian``
+    use the DH table instead of the pytorch-kinematics chain; ``jacobian`` (6 rows) and
+    ``chain`` stay pytorch-kinematics'.
 
     Args:
         device: device of the chain and of every returned tensor.
