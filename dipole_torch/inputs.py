@@ -16,7 +16,17 @@ from dipole_torch.validation import (
     check_real_tensor,
 )
 
-__all__ = ["Bounds", "SigmaStart", "Theta0", "as_covariance", "as_theta0", "make_box"]
+__all__ = [
+    "Bounds",
+    "SigmaStart",
+    "Theta0",
+    "as_covariance",
+    "as_theta0",
+    "check_asked",
+    "check_in_box",
+    "into_box",
+    "make_box",
+]
 
 Bounds = tuple[float | list[float] | Tensor, float | list[float] | Tensor] | None
 # θ0: a [D] tensor, list or numpy array.
@@ -123,6 +133,45 @@ def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
             f"[{float(lower[axis])}, {float(upper[axis])}]"
         )
     return lower, upper
+
+
+def into_box(box: tuple[Tensor, Tensor] | None, theta: Tensor) -> Tensor:
+    """``theta [..., D]`` projected onto ``box`` (``(lower [D], upper [D])``); unchanged
+    without one."""
+    if box is None:
+        return theta
+    return torch.minimum(torch.maximum(theta, box[0]), box[1])
+
+
+def check_in_box(box: tuple[Tensor, Tensor] | None, theta: Tensor) -> None:
+    """Raise ``ValueError`` naming the first row of ``theta [B, D]`` outside ``box``
+    (compared in the told dtype, so an asked row rounded to float32 still counts as inside)."""
+    if box is None:
+        return
+    lower, upper = (edge.to(device=theta.device, dtype=theta.dtype) for edge in box)
+    outside = (theta < lower) | (theta > upper)
+    if bool(outside.any()):
+        row, axis = (int(i) for i in outside.nonzero()[0])
+        raise ValueError(
+            f"theta row {row} lies outside bounds on axis {axis}: "
+            f"{float(theta[row, axis])} not in [{float(lower[axis])}, {float(upper[axis])}]"
+        )
+
+
+def check_asked(asked: Tensor, theta: Tensor) -> None:
+    """Raise ``ValueError`` naming the first told row of ``theta [B, D]`` that is not the
+    asked one, ``asked [B', D]``, B ≤ B' (compared in the told dtype: an asked row cast to
+    float32 and back is the same row)."""
+    theta = theta.detach()
+    asked = asked[: theta.shape[0]].to(device=theta.device, dtype=theta.dtype)
+    different = (asked != theta).any(-1)
+    if bool(different.any()):
+        row = int(different.nonzero()[0])
+        gap = float((asked[row] - theta[row]).abs().max())
+        raise ValueError(
+            f"theta row {row} is not the row asked (it differs by up to {gap:g}): tell() "
+            "takes the rows of the last ask as asked (a new point is asked, not told)"
+        )
 
 
 def _is_number(value) -> bool:

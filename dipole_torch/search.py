@@ -17,7 +17,17 @@ from torch import Tensor
 
 from dipole_torch.archive import NO_POLICY, PROBE, SampleArchive
 from dipole_torch.gaussian import DTYPE
-from dipole_torch.inputs import Bounds, SigmaStart, Theta0, as_covariance, as_theta0, make_box
+from dipole_torch.inputs import (
+    Bounds,
+    SigmaStart,
+    Theta0,
+    as_covariance,
+    as_theta0,
+    check_asked,
+    check_in_box,
+    into_box,
+    make_box,
+)
 from dipole_torch.policy_set import PolicySet
 from dipole_torch.result import SearchResult
 from dipole_torch.reward import RewardRange, check_rewards, make_reward_scale
@@ -272,7 +282,7 @@ class PolicySearch:
             owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
         else:
             theta, owner = self._propose()
-        theta = self._into_box(theta)
+        theta = into_box(self.box, theta)
         self._pending, self._pending_owner = theta, owner
         if max_rows is not None:
             theta = theta[: int(max_rows)]
@@ -298,40 +308,6 @@ class PolicySearch:
         """``[K_sampled]`` the policies that draw a sample at the next ask: the active ones."""
         return self.active.nonzero().squeeze(-1)
 
-    def _check_asked(self, theta: Tensor) -> None:
-        """Raise ``ValueError`` naming the first told row that is not the asked one (compared
-        in the told dtype: an asked row cast to float32 and back is the same row)."""
-        theta = theta.detach()
-        asked = self._pending[: theta.shape[0]].to(device=theta.device, dtype=theta.dtype)
-        different = (asked != theta).any(-1)
-        if bool(different.any()):
-            row = int(different.nonzero()[0])
-            gap = float((asked[row] - theta[row]).abs().max())
-            raise ValueError(
-                f"theta row {row} is not the row asked (it differs by up to {gap:g}): tell() "
-                "takes the rows of the last ask as asked (a new point is asked, not told)"
-            )
-
-    def _check_in_box(self, theta: Tensor) -> None:
-        """Raise ``ValueError`` naming the first told row outside the box (compared in the
-        told dtype, so an asked row rounded to float32 still counts as inside)."""
-        if self.box is None:
-            return
-        lower, upper = (edge.to(device=theta.device, dtype=theta.dtype) for edge in self.box)
-        outside = (theta < lower) | (theta > upper)
-        if bool(outside.any()):
-            row, axis = (int(i) for i in outside.nonzero()[0])
-            raise ValueError(
-                f"theta row {row} lies outside bounds on axis {axis}: "
-                f"{float(theta[row, axis])} not in [{float(lower[axis])}, {float(upper[axis])}]"
-            )
-
-    def _into_box(self, theta: Tensor) -> Tensor:
-        """``theta [..., D]`` projected onto the box; unchanged without ``bounds``."""
-        if self.box is None:
-            return theta
-        return torch.minimum(torch.maximum(theta, self.box[0]), self.box[1])
-
     # ------------------------------------------------------------------ tell
     def tell(self, theta: Tensor, rewards: Tensor) -> None:
         """Report the returns of the parameters from the last ``ask``.
@@ -355,18 +331,18 @@ class PolicySearch:
                 f"ask, or its first n (1 <= n <= {asked})"
             )
         check_finite(theta, "theta")
-        self._check_in_box(theta)
-        self._check_asked(theta)
+        check_in_box(self.box, theta)
+        check_asked(self._pending, theta)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
         self.reward_scale.validate(rewards, first=not self.started)  # before any change
-        theta = self._into_box(theta.detach().to(device=self.device, dtype=DTYPE))
+        theta = into_box(self.box, theta.detach().to(device=self.device, dtype=DTYPE))
         snapshot = self.state_dict()
         try:
             self._tell(theta, rewards)
             if self.box is not None:
                 # Eq. 7's means are convex combinations of samples in the box, but the
                 # posterior means of the paper's DIPOLE weigh them by matrices.
-                self.policy_set.means = self._into_box(self.policy_means)
+                self.policy_set.means = into_box(self.box, self.policy_means)
         except BaseException:
             self._load_state_dict(snapshot)
             raise
