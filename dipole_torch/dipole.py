@@ -127,11 +127,13 @@ class Dipole(PolicySearch):
             self.cluster_every,
         )  # fmt: skip
         self.retirement = Retirement(
-            options.retire_std, options.merge_radius, self.exploration.keeps_covariance
-        )
+            options.retire_std, options.merge_radius, self.exploration.keeps_covariance,
+            options.refine, options.refine_share,
+        )  # fmt: skip
         self.matching = ReplaceMatching() if options.matching == "replace" else OverlapMatching()
         self.exploration.register(self)
         self.matching.register(self)
+        self.retirement.register(self)
         self.clusterings_skipped = 0  # clusterings that failed numerically
         self.sampler: DPSampler | None = None  # built with H at the first clustering
         self.dp_state: DPMixtureState | None = None
@@ -150,7 +152,18 @@ class Dipole(PolicySearch):
 
     @property
     def converged(self) -> Tensor:
-        return self.retirement.converged(self)
+        """``[K]`` whether each policy has converged for good: its exploration std is below
+        its retirement threshold and no wake could refine it further (with ``refine > 0``, a
+        retired policy is woken while trials remain, so a run's ``stop()`` says
+        ``"converged"`` only once θ or the returns are resolved to rounding)."""
+        return self.retirement.final(self)
+
+    @property
+    def clustered_policies(self) -> Tensor:
+        """``[K]`` the policies whose samples a clustering sees (``matching="overlap"``): the
+        active ones but for those woken to refine, whose own exploration alone moves them
+        (``Waking``)."""
+        return self.active & ~self.retirement.refining(self)
 
     # ------------------------------------------------------------------ ask
     def _batch_size(self) -> int:
@@ -201,6 +214,7 @@ class Dipole(PolicySearch):
             self._cluster()
         self.retirement.retire_and_merge(self)
         self.vetting.queue_probes(self, clustered)
+        self.retirement.wake(self)  # every policy retired: refine them further, or restart
 
     # ------------------------------------------------------------------ clustering
     def _augmented(self, rows: Tensor | None = None) -> Tensor:
@@ -317,6 +331,7 @@ class Dipole(PolicySearch):
         return {
             **super().state_dict(),
             **self.vetting.state_dict(),
+            **self.retirement.state_dict(),
             "initial_prior": None if self.sampler is None else self.sampler.prior.state_dict(),
             "dp_state": None if self.dp_state is None else self.dp_state.state_dict(),
             "clusterings_skipped": self.clusterings_skipped,
@@ -326,6 +341,7 @@ class Dipole(PolicySearch):
         super()._load_state_dict(state)
         try:
             self.vetting.load_state_dict(state, self.device)
+            self.retirement.load_state_dict(state)
             prior, dp = (
                 _to_device(state[key], self.device) for key in ("initial_prior", "dp_state")
             )

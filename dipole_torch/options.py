@@ -42,6 +42,9 @@ class DipoleOptions:
                            iteration (the others wait)
     ``retire_std``         1e-3: stop sampling a           0 (never)
                            converged policy
+    ``refine``             0.1: wake retired policies      0 (never)
+                           for a 10× finer threshold
+                           once none is active
     ``merge_radius``       1: drop duplicate policies      0 (never)
     ``auxiliary``          ``"auto"``                      ``"fresh"`` (Algorithm 8)
     =====================  ==============================  ===================================
@@ -69,7 +72,12 @@ class DipoleOptions:
         pair_points: probes between two neighbouring policies (1: the midpoint).
         max_policies: active policies at most (None: no limit).
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
-        retire_std: retire a policy once its exploration std is below this times Σ_start's.
+        retire_std: retire a policy once its exploration std is below this times Σ_start's
+            (0: never).
+        refine: once no policy is active, retired ones are woken with their threshold times
+            this, in [0, 1) (0: never woken); see mechanisms.retirement.Waking.
+        refine_share: woken policies take at most this share of the trials after the first
+            time every policy retired, in (0, 1); restarts (scouts) take the rest.
         merge_radius: drop a policy within this many exploration stds of another (0: never).
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
             draws, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
@@ -96,6 +104,8 @@ class DipoleOptions:
     max_policies: int | None = 8
     max_sampled: int | None = 4
     retire_std: float = 1e-3
+    refine: float = 0.1
+    refine_share: float = 0.2
     merge_radius: float = 1.0
     auxiliary: str = "auto"
 
@@ -136,6 +146,7 @@ PAPER: dict[str, Any] = dict(
     max_policies=None,
     max_sampled=None,
     retire_std=0.0,
+    refine=0.0,
     merge_radius=0.0,
     hill_valley=False,
     auxiliary="fresh",
@@ -159,6 +170,12 @@ def _unit_interval(value, name: str) -> None:
     check_real(value, name)
     if not (math.isfinite(value) and 0 <= value <= 1):
         raise ValueError(f"{name} must lie in [0, 1], got {value!r}")
+
+
+def _fraction(value, name: str) -> None:
+    check_real(value, name)
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{name} must lie in [0, 1), got {value!r}")
 
 
 def _floor(value, name: str) -> None:
@@ -210,6 +227,8 @@ _CHECKS = {
     "max_policies": _optional_count,
     "max_sampled": _optional_count,
     "retire_std": _non_negative,
+    "refine": _fraction,
+    "refine_share": _floor,
     "merge_radius": _non_negative,
     "auxiliary": _choice("auto", "fresh", "reuse"),
 }

@@ -101,6 +101,9 @@ def test_a_combination_that_cannot_run_is_refused_naming_the_conflict():
         ({"reward_floor": 1.0}, ValueError, r"reward_floor must lie in \(0, 1\)"),
         ({"reward_range": (1.0, "a")}, ValueError, "reward_range must be None, .low, high."),
         ({"sweeps": 0}, ValueError, "sweeps must be a positive integer"),
+        ({"refine": 1.0}, ValueError, r"refine must lie in \[0, 1\), got 1.0"),
+        ({"refine": -0.1}, ValueError, r"refine must lie in \[0, 1\), got -0.1"),
+        ({"refine_share": 0.0}, ValueError, r"refine_share must lie in \(0, 1\)"),
         ({"alhpa": 2.0}, TypeError, "unknown DIPOLE option.*'alhpa'"),
     ],
 )

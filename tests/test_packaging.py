@@ -223,6 +223,17 @@ def test_a_checkpoint_from_before_max_sampled_resumes_as_it_ran(tmp_path):
     )
 
 
+def test_a_checkpoint_from_before_waking_resumes_as_it_ran(tmp_path):
+    """A checkpoint from before algo.optimizer.refine never woke retired policies: resuming
+    refuses and names the override that resumes it as it ran (refine=0), which then works;
+    refine_share (a share of the wakes' trials) has no effect without them."""
+    common = ("task=multimodal", "algo=dipole", "figure_every=0")
+    removed = ("refine: 0.1", "refine_share: 0.2")
+    with pytest.raises(AssertionError, match=r"algo\.optimizer\.refine=0\.0"):
+        resumes_without(tmp_path / "plain", common, removed)
+    resumes_without(tmp_path / "zero", common, removed, ("algo.optimizer.refine=0.0",))
+
+
 def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
     """Checkpoints written before task.env.engine existed lack it: they resume with "auto"."""
     common = ("task=cartpole", "algo=power", "figure_every=0", "task.env.steps=50")

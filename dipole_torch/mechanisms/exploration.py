@@ -100,6 +100,11 @@ class SuccessRule:
     geometrically near an optimum and grows on a slope, and the covariance learns the
     optimum's shape. The covariance is kept from clustering to clustering.
 
+    Σ here is Igel et al.'s σ²C in one matrix, so p is their σ·p_c: it is scaled with the
+    covariance's scale at every sample. (Left in absolute units, a path from steps of
+    1e-9 added its rank-one term to a covariance shrunk to 1e-11 at the next success, and
+    the exploration stalled there: a policy refined over many decades never got closer.)
+
     Per-policy fields: ``success`` (p̄, starting at p_t) and ``paths`` (p, starting at 0).
 
     Args:
@@ -142,7 +147,7 @@ class SuccessRule:
         factor = torch.minimum(factor, 1.0 / relative.clamp_min(1e-300))
         policies.paths, policies.success = policies.paths.clone(), policies.success.clone()
         policies.covariances = policies.covariances.clone()
-        policies.paths[policy] = paths
+        policies.paths[policy] = paths * factor[:, None]  # in the scale's units, as Σ
         policies.success[policy] = success
         policies.covariances[policy] = covs * factor[:, None, None] ** 2
 

@@ -119,15 +119,17 @@ class OverlapMatching:
         """Nothing to record after the first clustering."""
 
     def clustered_rows(self, search: Dipole) -> Tensor:
-        """``[N']`` the samples of the active policies and the scouts (retired policies keep
-        theirs out of it)."""
+        """``[N']`` the samples of the clustered policies (``Dipole.clustered_policies``:
+        the active ones but for those woken to refine) and the scouts (retired and refining
+        policies keep theirs out of it)."""
         owner = search.archive.owner
-        return ((owner < 0) | search.active[owner.clamp_min(0)]).nonzero().squeeze(-1)
+        clustered = search.clustered_policies
+        return ((owner < 0) | clustered[owner.clamp_min(0)]).nonzero().squeeze(-1)
 
     def warm_start(self, search: Dipole, y: Tensor, rows: Tensor) -> DPMixtureState:
-        """One component per active policy (its samples) and one per scout."""
+        """One component per clustered policy (its samples) and one per scout."""
         old = search.archive.owner[rows]
-        active = search.active.nonzero().squeeze(-1)
+        active = search.clustered_policies.nonzero().squeeze(-1)
         compact = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
         compact[active] = torch.arange(active.numel(), device=search.device)
         labels = _start_labels(torch.where(old >= 0, compact[old.clamp_min(0)], old),
@@ -143,7 +145,8 @@ class OverlapMatching:
         labels = state.labels
         k_new = state.num_components
         old = archive.owner[rows]
-        active = policies.active.nonzero().squeeze(-1)
+        clustered = search.clustered_policies
+        active = clustered.nonzero().squeeze(-1)
         compact = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
         compact[active] = torch.arange(active.numel(), device=search.device)
         owned = old >= 0
@@ -155,14 +158,16 @@ class OverlapMatching:
         component_best = component_best.scatter_reduce(0, labels, rewards, "amax")
         fresh = fresh[torch.argsort(component_best[fresh], descending=True, stable=True)]
         max_policies = search.options.max_policies
+        refining = int((policies.active & ~clustered).sum())
         room = (
             fresh.numel()
             if max_policies is None
-            else max(max_policies - int((continues >= 0).sum()), 0)
+            else max(max_policies - refining - int((continues >= 0).sum()), 0)
         )
         fresh = fresh[:room]
-        # The policies after it: retired ones, continued ones, then new ones.
-        keep_old = torch.cat(((~policies.active).nonzero().squeeze(-1), continues[continues >= 0]))
+        # The policies after it: those left out (retired, refining), continued ones, then new
+        # ones.
+        keep_old = torch.cat(((~clustered).nonzero().squeeze(-1), continues[continues >= 0]))
         new_index = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
         new_index[keep_old] = torch.arange(keep_old.numel(), device=search.device)
         component_policy = torch.full((k_new,), -1, dtype=torch.long, device=search.device)
@@ -191,7 +196,7 @@ class OverlapMatching:
         policies.index(keep_old)
         if new_means:
             policies.extend(torch.stack(new_means), torch.stack(new_covs))
-        # Re-own the samples: retired policies' stay, clustered ones follow their component
+        # Re-own the samples: those left out keep theirs, clustered ones follow their component
         # (a component that became no policy loses its samples).
         owner = new_index[archive.owner.clamp_min(0)]
         owner[rows] = component_policy[labels]

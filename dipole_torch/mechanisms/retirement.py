@@ -1,9 +1,15 @@
-"""A policy's life after it was found: retirement once converged, merging of duplicates, and
-the restart of a policy whose samples straddle two hills.
+"""A policy's life after it was found: retirement once converged, waking to refine it further,
+merging of duplicates, and the restart of a policy whose samples straddle two hills.
 
-* Retirement (``retire_std``): a policy whose exploration std has shrunk below
-  ``retire_std`` times Σ_start's stops being sampled; it stays among the policies, and its
-  trials go to the others.
+* Retirement (``retire_std``): a policy whose exploration std has shrunk below its threshold,
+  at first ``retire_std`` times Σ_start's, stops being sampled; it stays among the policies,
+  and its trials go to the others.
+* Waking (``refine``, ``refine_share``; ``Waking``): once no policy is active, the
+  retired ones at the coarsest threshold are sampled again, each with its threshold times
+  ``refine`` (one more decade with 0.1), while the trials they have taken stay within
+  ``refine_share`` of the trials after the first convergence; the others go to restarts
+  (scouts). A converged policy is then not frozen for good: its precision keeps growing
+  while trials remain.
 * Merging (``merge_radius``): an active policy closer than ``merge_radius`` exploration stds
   to another (both ways) or to a retired one, and to no third policy, is a duplicate and is
   dropped (one whose exploration covers two or more is left to the hill-valley probes).
@@ -21,11 +27,22 @@ import torch
 from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
+from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
     from dipole_torch.search import PolicySearch, TellBatch
 
-__all__ = ["Retirement", "exploration_distance"]
+__all__ = ["NoWaking", "Retirement", "Waking", "exploration_distance"]
+
+# A policy whose exploration std is below this fraction of |θ| + Σ_start's std on every axis
+# samples θ only to rounding (float64 resolves 2.2e-16 relative): it is never woken again.
+# (Asked in float32, θ rounds at 6e-8 first: the returns then come out equal, and the rule
+# for a plateau below stops the wakes.)
+FINEST_STD = 1e-12
+# A retired policy whose M kept returns spread at least this fraction of the told returns'
+# range has a gain still to show (below it: 1e-9 of the range, finer than any accuracy
+# asked of the benchmarks, 5e-8 of the range at the finest).
+VISIBLE_GAIN = 1e-9
 
 
 def exploration_distance(search: PolicySearch, diff: Tensor) -> Tensor:
@@ -40,6 +57,182 @@ def exploration_distance(search: PolicySearch, diff: Tensor) -> Tensor:
     return torch.where(ok[:, None], z.square().sum(-2).sqrt(), math.inf)
 
 
+class NoWaking:
+    """Retired policies stay retired: every one's threshold is ``retire_std``."""
+
+    def register(self, search: PolicySearch) -> None:
+        """Nothing to keep per policy."""
+
+    def thresholds(self, search: PolicySearch, retire_std: float) -> Tensor | float:
+        return retire_std
+
+    def refining(self, search: PolicySearch) -> Tensor:
+        """``[K]`` the policies that were woken (none)."""
+        return torch.zeros(search.num_policies, dtype=torch.bool, device=search.device)
+
+    def refinable(self, search: PolicySearch) -> Tensor:
+        """``[K]`` the policies a wake could still refine (none)."""
+        return torch.zeros(search.num_policies, dtype=torch.bool, device=search.device)
+
+    def observe(self, search: PolicySearch, batch: TellBatch) -> None:
+        pass
+
+    def wake(self, search: PolicySearch) -> None:
+        pass
+
+    def forget(self) -> None:
+        """Nothing measured in the old world."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class Waking(NoWaking):
+    """Retired policies woken to converge one level further while trials remain.
+
+    A policy retires once its exploration std is below ``retire_std · refine**n`` of
+    Σ_start's, n (field ``refinements``) the times it was woken. When no policy is active
+    (every one retired, no candidate accepted), retired policies are woken, n + 1 each, and
+    sampled again with the exploration they retired with (the success rule goes on
+    shrinking it):
+
+    * **A gain to show**: the policies whose M kept returns spread at least
+      ``VISIBLE_GAIN`` of the range of every return told, those with the fewest wakes
+      (every optimum one level further before any goes two), while the woken policies have
+      taken less than ``share`` of the trials since every policy first retired.
+    * **Barren restarts**: otherwise the best retired policy (highest kept return), whatever
+      its returns show, while the woken policies have taken less than ``share`` of the
+      trials of restarts and woken policies since the last new policy. A narrow peak on a
+      broad hill shows no gain until the exploration reaches its scale; when the restarts
+      find nothing, the best solution is the one to make better.
+
+    Otherwise the run restarts as before (the next asks are scouts from the start
+    distribution); the first time every policy has retired, it restarts first. The woken
+    policies take turns as active ones do (``max_sampled``: the best kept returns first),
+    and clusterings leave their samples out as they leave the retired ones'.
+
+    A policy is not woken again once its std is below ``FINEST_STD`` of |θ| + Σ_start's
+    std on every axis (θ resolved to rounding), nor while its kept returns are all equal
+    (a plateau at its scale, or the returns' rounding: no sample can show a gain).
+
+    Per-policy field: ``refinements`` (n, starting at 0).
+
+    Args:
+        refine: factor of the threshold at each wake, in (0, 1).
+        share: the share of the trials after the first convergence (and of those since the
+            last new policy) that woken policies take at most, in (0, 1); the restarts that
+            look for new optima take the rest.
+    """
+
+    def __init__(self, refine: float, share: float):
+        self.refine = float(refine)
+        self.share = float(share)
+        self.converged_at = -1  # trials when every policy was first retired (-1: not yet)
+        self.refine_trials = 0  # samples of woken policies since then
+        # Since the last new policy: trials of restarts (asks with no policy active) and
+        # samples of woken policies; the policy ids handed out by then.
+        self.barren_restart_trials = 0
+        self.barren_refine_trials = 0
+        self.known_ids = 0
+        self.low, self.high = math.inf, -math.inf  # every told return's range
+
+    def register(self, search: PolicySearch) -> None:
+        search.policy_set.register("refinements", PolicyField(default=0, dtype=torch.long))
+
+    def thresholds(self, search: PolicySearch, retire_std: float) -> Tensor:
+        """``[K]`` each policy's retirement threshold, ``retire_std · refine**n``."""
+        n = search.policy_set.refinements.to(DTYPE)
+        return retire_std * torch.pow(torch.tensor(self.refine, dtype=DTYPE), n)
+
+    def refining(self, search: PolicySearch) -> Tensor:
+        """``[K]`` the policies that were woken (n > 0)."""
+        return search.policy_set.refinements > 0
+
+    def observe(self, search: PolicySearch, batch: TellBatch) -> None:
+        """The returns' range; the trials of restarts and of woken policies."""
+        self.low = min(self.low, float(batch.rewards.min()))
+        self.high = max(self.high, float(batch.rewards.max()))
+        if not search.started or self.converged_at < 0:
+            return
+        if not bool(search.active.any()):
+            self.barren_restart_trials += int(batch.rewards.shape[0])
+            return
+        owner = batch.owner[batch.owner >= 0]
+        woken = int((search.policy_set.refinements[owner] > 0).sum())
+        self.refine_trials += woken
+        self.barren_refine_trials += woken
+
+    def refinable(self, search: PolicySearch) -> Tensor:
+        """``[K]`` the policies a wake could still refine: θ not resolved to rounding, and
+        kept returns not all equal."""
+        policies = search.policy_set
+        std = policies.covariances.diagonal(dim1=-2, dim2=-1).sqrt()
+        scale = policies.means.abs() + search.sigma_start.diagonal().sqrt()
+        resolved = (std <= FINEST_STD * scale).all(-1)
+        archive = search.archive
+        k = search.num_policies
+        flat = archive.per_policy("amax", k) == archive.per_policy("amin", k)
+        flat = flat & (archive.counts(k) > 1)
+        return ~resolved & ~flat
+
+    def visible_gain(self, search: PolicySearch) -> Tensor:
+        """``[K]`` whether each policy's M kept returns spread at least
+        ``VISIBLE_GAIN`` of the told returns' range."""
+        archive, k = search.archive, search.num_policies
+        spread = archive.per_policy("amax", k) - archive.per_policy("amin", k)
+        return spread >= VISIBLE_GAIN * (self.high - self.low)
+
+    def wake(self, search: PolicySearch) -> None:
+        """With no policy active: wake retired policies as the class docstring says."""
+        if bool(search.active.any()) or search.num_policies == 0:
+            return
+        policies = search.policy_set
+        if self.converged_at < 0:
+            self.converged_at = search.trials  # the first convergence: restart first
+            self.known_ids = policies.next_id
+            return
+        if policies.next_id > self.known_ids:  # a new policy since: the restarts paid
+            self.known_ids = policies.next_id
+            self.barren_restart_trials = self.barren_refine_trials = 0
+        wakeable = ~policies.active & self.refinable(search)
+        since_new = self.barren_refine_trials + self.barren_restart_trials
+        barren = self.barren_refine_trials < self.share * since_new
+        shared = self.refine_trials < self.share * (search.trials - self.converged_at)
+        visible = wakeable & self.visible_gain(search)
+        if shared and bool(visible.any()):
+            fewest = policies.refinements[visible].min()
+            woken = visible & (policies.refinements == fewest)
+        elif barren and bool(wakeable.any()):
+            # The best one only: the restarts find nothing, the best solution can be better.
+            best = torch.where(wakeable, search.policy_best_rewards, -math.inf)
+            woken = torch.zeros_like(wakeable)
+            woken[int(best.argmax())] = True
+        else:
+            return
+        policies.refinements = torch.where(woken, policies.refinements + 1, policies.refinements)
+        policies.active = policies.active | woken
+
+    def forget(self) -> None:
+        """The world changed (``reevaluate``): the returns' range is measured again from the
+        next tell (the old world's would judge the new returns' spread)."""
+        self.low, self.high = math.inf, -math.inf
+
+    KEYS = ("converged_at", "refine_trials", "barren_restart_trials", "barren_refine_trials",
+            "known_ids", "low", "high")  # fmt: skip
+
+    def state_dict(self) -> dict:
+        return {f"waking_{key}": getattr(self, key) for key in self.KEYS}
+
+    def load_state_dict(self, state: dict) -> None:
+        fresh = Waking(self.refine, self.share)  # (a checkpoint from before waking: fresh)
+        for key in self.KEYS:
+            value = state.get(f"waking_{key}", getattr(fresh, key))
+            setattr(self, key, type(getattr(fresh, key))(value))
+
+
 class Retirement:
     """Retirement, merging and straddler restarts.
 
@@ -48,18 +241,34 @@ class Retirement:
         merge_radius: duplicate distance in exploration stds (0: never merge).
         restart_straddlers: restart policies whose samples straddle two hills (for
             exploration that is kept between clusterings).
+        refine: the threshold's factor at each wake (0: retired policies stay retired).
+        refine_share: the share of the trials after the first convergence that woken
+            policies take at most.
     """
 
-    def __init__(self, retire_std: float, merge_radius: float, restart_straddlers: bool):
+    def __init__(
+        self,
+        retire_std: float,
+        merge_radius: float,
+        restart_straddlers: bool,
+        refine: float = 0.0,
+        refine_share: float = 0.2,
+    ):
         self.retire_std = float(retire_std)
         self.merge_radius = float(merge_radius)
         self.restarts = bool(restart_straddlers)
+        wakes = self.retire_std > 0 and refine > 0
+        self.waking = Waking(refine, refine_share) if wakes else NoWaking()
         self._in_valley: Tensor | None = None  # within one tell: see observe
+
+    def register(self, search: PolicySearch) -> None:
+        self.waking.register(search)
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """Which policies' latest sample was worse than every one they keep (``[K]``),
-        judged before the samples are archived."""
+        judged before the samples are archived; the waking's trial counts."""
         self._in_valley = None
+        self.waking.observe(search, batch)
         if not (self.restarts and search.started):
             return
         rows = batch.owner >= 0
@@ -69,13 +278,37 @@ class Retirement:
         self._in_valley[policy] = batch.rewards[rows] < worst[policy]
 
     def forget(self) -> None:
+        """The world changed: nothing judged on the old world's returns is kept."""
         self._in_valley = None
+        self.waking.forget()
 
     def converged(self, search: PolicySearch) -> Tensor:
-        """``[K]`` whether each policy's exploration std is below ``retire_std`` times
-        Σ_start's (never with ``retire_std = 0``, but for a covariance lost to rounding, NaN,
-        which must not be sampled)."""
-        return ~(search.relative_std() >= self.retire_std)
+        """``[K]`` whether each policy's exploration std is below its threshold times
+        Σ_start's (``retire_std``, lowered by each wake; never with ``retire_std = 0``, but
+        for a covariance lost to rounding, NaN, which must not be sampled)."""
+        return ~(search.relative_std() >= self.waking.thresholds(search, self.retire_std))
+
+    def refining(self, search: PolicySearch) -> Tensor:
+        """``[K]`` the policies woken to refine: clusterings leave their samples out, as
+        they leave the retired ones' (DP components over several converged policies' tight
+        samples would merge them)."""
+        return self.waking.refining(search)
+
+    def final(self, search: PolicySearch) -> Tensor:
+        """``[K]`` whether each policy has converged for good: below its threshold, and no
+        wake could refine it further (``Waking.refinable``)."""
+        return self.converged(search) & ~self.waking.refinable(search)
+
+    def wake(self, search: PolicySearch) -> None:
+        """At the end of an iteration: with no policy left active, wake retired ones
+        (``Waking``)."""
+        self.waking.wake(search)
+
+    def state_dict(self) -> dict:
+        return self.waking.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.waking.load_state_dict(state)
 
     # ------------------------------------------------------------------ restarts
     def restart_straddlers(self, search: PolicySearch) -> None:

@@ -67,6 +67,9 @@ ADDED_KEYS = {
     "task.env.engine": "auto",
     # Runs from before DIPOLE's matching was an option: the default variant's.
     "algo.optimizer.matching": "overlap",
+    # Runs from before retired policies were woken to refine them.
+    "algo.optimizer.refine": 0.0,
+    "algo.optimizer.refine_share": 0.2,
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
