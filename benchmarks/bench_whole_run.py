@@ -1,0 +1,110 @@
+"""Whole-run optimizer CPU at equal trials, evaluations excluded: DIPOLE against IPOP-CMA-ES
+and NMMSO, its anchors, on bench_multioptima's landscapes, measured in the same run.
+
+    python benchmarks/bench_whole_run.py [--dims 2 10] [--ks 2 4 8] [--seeds 2] \\
+        [--trials 2000] [--methods DIPOLE "DIPOLE (paper)" IPOP-CMA-ES NMMSO]
+
+Each method runs on each case (D, k, seed) of ``benchmarks/bench_multioptima.py`` with the
+setup that script gives it (DIPOLE's defaults told the box; pycma's IPOP-CMA-ES with its
+restarts; pynmmso's NMMSO with its defaults), up to ``--trials`` evaluations, in this process
+with one torch thread, the methods alternated case by case so that a change in the machine's
+load falls on all of them alike. Timed: the process CPU time of the whole run
+(``time.process_time``), less the CPU time spent inside the landscape's evaluations (each
+call timed), so what remains is the optimizer's own work: its ask/tell, its bookkeeping and,
+for NMMSO, the Python around each single-point evaluation. First-call costs (imports, lazy
+initialisation) are spent in a warm-up run before the table.
+
+Printed per D: each method's optimizer CPU summed over the cases, the trials it used, its
+CPU per trial, and DIPOLE's (and DIPOLE (paper)'s) ratio to IPOP-CMA-ES's and to NMMSO's
+summed CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_multioptima import RUNNERS, case_seeds, make_landscape  # noqa: E402
+
+METHODS = ("DIPOLE", "DIPOLE (paper)", "IPOP-CMA-ES", "NMMSO")
+ANCHORS = ("IPOP-CMA-ES", "NMMSO")
+
+
+class TimedLandscape:
+    """A landscape whose evaluations are counted and timed (process CPU seconds); the rest
+    of its interface (``dim``, ``lower``, ``upper``, ``reward_range``, ...) passes through."""
+
+    def __init__(self, landscape):
+        self.landscape = landscape
+        self.seconds = 0.0
+        self.trials = 0
+
+    def __getattr__(self, name: str):
+        return getattr(self.landscape, name)
+
+    def __call__(self, theta: Tensor) -> Tensor:
+        start = time.process_time()
+        values = self.landscape(theta)
+        self.seconds += time.process_time() - start
+        self.trials += int(theta.shape[0]) if theta.dim() > 1 else 1
+        return values
+
+
+def optimizer_cpu(method: str, dim: int, k: int, seed: int, trials: int) -> tuple[float, int]:
+    """``(optimizer CPU seconds, trials evaluated)`` of one run of ``method`` on case
+    (D, k, seed) with a budget of ``trials``."""
+    landscape_seed, method_seed = case_seeds(dim, k, seed)
+    landscape = TimedLandscape(make_landscape(dim, k, landscape_seed))
+    start = time.process_time()
+    RUNNERS[method](landscape, [trials], method_seed)
+    total = time.process_time() - start
+    return total - landscape.seconds, landscape.trials
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
+    parser.add_argument("--ks", type=int, nargs="+", default=[2, 4, 8])
+    parser.add_argument("--seeds", type=int, default=2, help="seeds 0 … N−1 per (D, k)")
+    parser.add_argument("--trials", type=int, default=2000)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    methods = [m for m in METHODS if m in args.methods]
+    for method in methods:  # first-call costs out of the table
+        optimizer_cpu(method, 2, 2, 0, 60)
+    header = f"{'D':>3} {'method':<15} {'CPU s':>8} {'trials':>7} {'µs/trial':>9}"
+    header += "".join(f" {'/' + anchor:>13}" for anchor in ANCHORS if anchor in methods)
+    print(f"optimizer CPU (evaluations excluded), {args.trials} trials a run, "
+          f"k in {args.ks}, {args.seeds} seeds")  # fmt: skip
+    print(header)
+    print("-" * len(header))
+    for dim in args.dims:
+        seconds = dict.fromkeys(methods, 0.0)
+        used = dict.fromkeys(methods, 0)
+        for k in args.ks:
+            for seed in range(args.seeds):
+                for method in methods:
+                    cpu, trials = optimizer_cpu(method, dim, k, seed, args.trials)
+                    seconds[method] += cpu
+                    used[method] += trials
+        for method in methods:
+            line = (
+                f"{dim:>3} {method:<15} {seconds[method]:>8.2f} {used[method]:>7} "
+                f"{1e6 * seconds[method] / max(used[method], 1):>9.0f}"
+            )
+            for anchor in ANCHORS:
+                if anchor in methods:
+                    ratio = seconds[method] / seconds[anchor]
+                    line += f" {ratio:>13.2f}"
+            print(line, flush=True)
+
+
+if __name__ == "__main__":
+    main()
