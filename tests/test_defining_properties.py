@@ -61,7 +61,8 @@ def success_rule_dipole(sigma_start: torch.Tensor) -> Dipole:
 
 def success_rule_by_hand(opt: Dipole, theta, rewards, owner):
     """The success rule of Igel, Suttorp & Hansen (2006), one told row at a time in Python
-    scalars: ``(paths, success, covariances, capped, successes)`` after the tell."""
+    scalars: ``(paths, success, covariances, capped, successes)`` after the tell. Σ is their
+    σ²C in one matrix, so the path is their σ·p_c: it scales with σ's factor."""
     dim = opt.dim
     c_p, p_t = 1.0 / 12.0, 2.0 / 11.0
     c_c, c_cov, damping = 2.0 / (dim + 2.0), 2.0 / (dim * dim + 6.0), 1.0 + dim / 2.0
@@ -84,7 +85,7 @@ def success_rule_by_hand(opt: Dipole, theta, rewards, owner):
         limit = 1.0 / math.sqrt(float((cov.diagonal() / start_var).max()))
         capped.append(factor > limit)
         factor = min(factor, limit)
-        paths[k], success[k], covs[k] = path, rate, cov * factor**2
+        paths[k], success[k], covs[k] = path * factor, rate, cov * factor**2
     return paths, success, covs, capped, successes
 
 
