@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_multioptima import run_tasks  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 BOX = 5.0
@@ -155,13 +156,10 @@ def summarise(cases: list[dict]) -> tuple[str, list[dict]]:
     return "\n".join(text), rows
 
 
-def _run(case):
-    torch.set_num_threads(1)
-    import cma  # noqa: F401  (imported before any timing: no case pays for an import)
-
-    import dipole_torch  # noqa: F401
-
-    return run_case(case)
+def _progress(i: int, n: int, case: dict) -> str:
+    reached = case["trials_to"][str(1e-6)]
+    return (f"[{i}/{n}] {case['peak']} D={case['dim']} {case['method']} seed={case['seed']}: "
+            f"1e-6 at {reached} trials, final gap {case['final_gap']:.1e}")  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -175,15 +173,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     tasks = [(k, d, m, s) for k in args.peaks for d in args.dims for m in args.methods
              for s in range(args.seeds)]  # fmt: skip
-    start = time.perf_counter()
-    if args.workers == 0:
-        cases = [_run(t) for t in tasks]
-    else:
-        import multiprocessing
-
-        with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
-            cases = list(pool.imap_unordered(_run, tasks))
-    wall = time.perf_counter() - start
+    # One torch thread a process, the peers imported before any case is timed.
+    cases, wall = run_tasks(run_case, tasks, args.workers, _progress)
     table, rows = summarise(cases)
     print(table)
     print(f"wall time {wall:.1f} s on {max(args.workers, 1)} process(es)")
