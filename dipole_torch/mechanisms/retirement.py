@@ -57,6 +57,12 @@ def exploration_distance(search: PolicySearch, diff: Tensor) -> Tensor:
     return torch.where(ok[:, None], z.square().sum(-2).sqrt(), math.inf)
 
 
+def _spread(search: PolicySearch) -> Tensor:
+    """``[K]`` the spread (max − min) of each policy's kept returns."""
+    archive, k = search.archive, search.num_policies
+    return archive.per_policy("amax", k) - archive.per_policy("amin", k)
+
+
 class NoWaking:
     """Retired policies stay retired: every one's threshold is ``retire_std``."""
 
@@ -172,18 +178,13 @@ class Waking(NoWaking):
         std = policies.covariances.diagonal(dim1=-2, dim2=-1).sqrt()
         scale = policies.means.abs() + search.sigma_start.diagonal().sqrt()
         resolved = (std <= FINEST_STD * scale).all(-1)
-        archive = search.archive
-        k = search.num_policies
-        flat = archive.per_policy("amax", k) == archive.per_policy("amin", k)
-        flat = flat & (archive.counts(k) > 1)
+        flat = (_spread(search) == 0) & (search.archive.counts(search.num_policies) > 1)
         return ~resolved & ~flat
 
     def visible_gain(self, search: PolicySearch) -> Tensor:
         """``[K]`` whether each policy's M kept returns spread at least
         ``VISIBLE_GAIN`` of the told returns' range."""
-        archive, k = search.archive, search.num_policies
-        spread = archive.per_policy("amax", k) - archive.per_policy("amin", k)
-        return spread >= VISIBLE_GAIN * (self.high - self.low)
+        return _spread(search) >= VISIBLE_GAIN * (self.high - self.low)
 
     def wake(self, search: PolicySearch) -> None:
         """With no policy active: wake retired policies as the class docstring says."""
@@ -251,8 +252,8 @@ class Retirement:
         retire_std: float,
         merge_radius: float,
         restart_straddlers: bool,
-        refine: float = 0.0,
-        refine_share: float = 0.2,
+        refine: float,
+        refine_share: float,
     ):
         self.retire_std = float(retire_std)
         self.merge_radius = float(merge_radius)
