@@ -205,6 +205,7 @@ def run_random_search(
 
 RUNNERS: dict[str, Callable[[NichingFunction, Sequence[int], int], peers.Snapshots]] = {
     "DIPOLE": peers.run_dipole,
+    "DIPOLE (settle)": peers.run_dipole_settle,
     "IPOP-CMA-ES": peers.run_ipop_cmaes,
     "NMMSO": peers.run_nmmso,
     "random search": run_random_search,
@@ -313,12 +314,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--functions", type=int, nargs="+", default=list(range(1, 11)))
     parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1 per function")
     parser.add_argument("--budgets", type=int, nargs="+", default=list(BUDGETS))
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument(
+        "--methods", nargs="+", default=list(METHODS), choices=METHODS + peers.OPT_IN
+    )
     parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "niching.json")
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
-    methods = [m for m in METHODS if m in args.methods]
+    methods = [m for m in METHODS + peers.OPT_IN if m in args.methods]
     numbers = sorted(set(args.functions))
     for n in numbers:
         if not 1 <= n <= len(FUNCTIONS):
@@ -326,7 +329,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     # DIPOLE first (the slowest), so the processes finish together.
     tasks = [(n, s, m, budgets) for m in methods for n in numbers for s in range(args.seeds)]
     cases, wall = peers.run_tasks(_task, tasks, args.workers, _progress)
-    order = {m: i for i, m in enumerate(METHODS)}
+    order = {m: i for i, m in enumerate(METHODS + peers.OPT_IN)}
     cases.sort(key=lambda c: (order[c["method"]], c["function"], c["seed"]))
     text, summary = summarize(cases, methods, numbers, budgets)
     print(text)

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_multioptima import RUNNERS, case_seeds, make_landscape  # noqa: E402
+from bench_multioptima import OPT_IN, RUNNERS, case_seeds, make_landscape  # noqa: E402
 
 METHODS = ("DIPOLE", "DIPOLE (paper)", "IPOP-CMA-ES", "NMMSO")
 ANCHORS = ("IPOP-CMA-ES", "NMMSO")
@@ -73,10 +73,10 @@ def main() -> None:
     parser.add_argument("--ks", type=int, nargs="+", default=[2, 4, 8])
     parser.add_argument("--seeds", type=int, default=2, help="seeds 0 … N−1 per (D, k)")
     parser.add_argument("--trials", type=int, default=2000)
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    methods = [m for m in METHODS if m in args.methods]
+    methods = [m for m in METHODS + OPT_IN if m in args.methods]
     for method in methods:  # first-call costs out of the table
         optimizer_cpu(method, 2, 2, 0, 60)
     header = f"{'D':>3} {'method':<15} {'CPU s':>8} {'trials':>7} {'µs/trial':>9}"

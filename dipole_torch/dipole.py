@@ -227,8 +227,11 @@ class Dipole(PolicySearch):
 
     def _fit(self, y: Tensor, sweeps: int, start: DPMixtureState | None = None) -> DPMixtureState:
         """``sweeps`` Gibbs sweeps of the weighted DP mixture on ``y`` from ``start`` (or
-        Algorithm 1's single component), ending with the posterior point estimate."""
-        return posterior_point_estimate(y, self.sampler.fit(y, sweeps, self.generator, start))
+        Algorithm 1's single component), ending with the posterior point estimate. A
+        warm start ends early once its partition settles (``settle``)."""
+        settle = None if start is None else self.options.settle
+        state = self.sampler.fit(y, sweeps, self.generator, start, settle=settle)
+        return posterior_point_estimate(y, state)
 
     def _after_initial_batch(self) -> None:
         """Build H from the exploration distribution, cluster the n0 samples (from one

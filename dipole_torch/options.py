@@ -56,6 +56,8 @@ class DipoleOptions:
         n0: initial samples from N(θ0, Σ_start); None: 2·M.
         cluster_every: iterations between DP clusterings (paper: "every M steps"); None: M.
         sweeps: Gibbs sweeps per clustering, warm-started.
+        settle: end a warm-started clustering early, once this many sweeps in a row left
+            the partition unchanged (None: always ``sweeps``); see ``DPSampler.fit``.
         initial_sweeps: Gibbs sweeps of the first clustering (from one component).
         reward_range: None (the kept returns' min–max, any units), (low, high) (a fixed map)
             or "positive" (positive returns used as weights); see dipole_torch.RewardScale.
@@ -89,6 +91,7 @@ class DipoleOptions:
     n0: int | None = None
     cluster_every: int | None = None
     sweeps: int = 5
+    settle: int | None = None
     initial_sweeps: int = 20
     reward_range: RewardRange = None
     reward_floor: float = 1e-3
@@ -212,6 +215,7 @@ _CHECKS = {
     "n0": _optional_count,
     "cluster_every": _optional_count,
     "sweeps": check_count,
+    "settle": _optional_count,
     "initial_sweeps": check_count,
     "reward_range": check_reward_range,
     "reward_floor": _floor,

@@ -141,9 +141,17 @@ class DPSampler:
         generator: torch.Generator | None = None,
         state: DPMixtureState | None = None,
         init: str = "single",
+        settle: int | None = None,
     ) -> DPMixtureState:
         """``num_sweeps`` sweeps on ``y`` from ``state`` (or from ``start`` with
         ``init``); the last state.
+
+        With ``settle``, the chain stops early once ``settle`` sweeps in a row have left
+        the partition unchanged (the same groups of points, whatever the labels' numbers).
+        Each sweep is still an exact transition of the chain; what changes is how many run.
+        Meant for a warm start, where the partition of the last clustering usually stands:
+        from Algorithm 1's single component, a first sweep that splits nothing would end a
+        chain that has not begun to mix.
 
         Args:
             y: ``[N, D]`` data, N ≥ 1, finite, D the prior's dimension.
@@ -151,6 +159,7 @@ class DPSampler:
             generator: source of all randomness.
             state: where the chain starts (``state.labels: [N]``); overrides ``init``.
             init: ``"single"`` or ``"sequential"`` (see ``start``).
+            settle: unchanged sweeps in a row that end the chain early (None: never).
         """
         check_matrix_shape(y, (-1, self.prior.dim), "y")
         check_finite(y, "y")
@@ -164,7 +173,26 @@ class DPSampler:
             raise ValueError(
                 f"state.labels must have shape [{y.shape[0]}], got {list(state.labels.shape)}"
             )
+        check_count(settle, "settle", optional=True)
         chain = self.to_chain(state)
+        if settle is None:
+            for _ in range(num_sweeps):
+                chain = self.sweep(y, chain, generator)
+            return self.to_state(chain)
+        partition, unchanged = _partition(state.labels), 0
         for _ in range(num_sweeps):
             chain = self.sweep(y, chain, generator)
+            current = _partition(self.to_state(chain).labels)
+            unchanged = unchanged + 1 if current == partition else 0
+            partition = current
+            if unchanged >= settle:
+                break
         return self.to_state(chain)
+
+
+def _partition(labels: Tensor) -> tuple[int, ...]:
+    """``labels [N]`` renumbered by first occurrence: equal for two labellings exactly when
+    they group the points alike. (In Python: N is a clustering's few points, where one
+    ``tolist`` costs less than the torch calls of a batched renumbering.)"""
+    first: dict[int, int] = {}
+    return tuple(first.setdefault(label, len(first)) for label in labels.tolist())

@@ -70,6 +70,8 @@ ADDED_KEYS = {
     # Runs from before retired policies were woken to refine them.
     "algo.optimizer.refine": 0.0,
     "algo.optimizer.refine_share": 0.2,
+    # Runs from before a clustering could end once its partition settled.
+    "algo.optimizer.settle": None,
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
