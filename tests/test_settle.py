@@ -2,8 +2,10 @@
 
 import pytest
 import torch
+from test_dp_mixture import clustering_prior
+from test_optimizer import two_optima
 
-from dipole_torch import Dipole, DipoleOptions, DPSampler, NormalInverseWishartPrior
+from dipole_torch import Dipole, DipoleOptions, DPSampler
 from dipole_torch.dp import sampler as dp_sampler
 
 F64 = torch.float64
@@ -13,19 +15,6 @@ def clusters(generator, k=3, per=8, d=2):
     centres = 20.0 * torch.arange(k, dtype=F64)[:, None].expand(k, d)
     labels = torch.arange(k).repeat_interleave(per)
     return centres[labels] + torch.randn(k * per, d, generator=generator, dtype=F64), labels
-
-
-def prior_for(y, df_extra=6):
-    """Means spread like the data, component covariances of the order of the clusters'."""
-    d = y.shape[1]
-    df = d + df_extra
-    return NormalInverseWishartPrior(
-        mean_loc=y.mean(0),
-        mean_covariance=torch.cov(y.T),
-        df=float(df),
-        scale=(df - d - 1) * 2.0 * torch.eye(d, dtype=F64),
-        regularization=1e-3 * torch.eye(d, dtype=F64),
-    )
 
 
 def counting(monkeypatch):
@@ -51,7 +40,7 @@ def test_partition_ignores_label_numbers():
 def test_a_settled_partition_ends_the_chain(settle, monkeypatch):
     g = torch.Generator().manual_seed(0)
     y, labels = clusters(g)
-    sampler = DPSampler(prior_for(y))
+    sampler = DPSampler(clustering_prior(y))
     start = sampler.fit(y, 20, g)  # a converged chain: the clusters found
     calls = counting(monkeypatch)
     state = sampler.fit(y, 20, g, start, settle=settle)
@@ -71,14 +60,14 @@ def test_a_changing_partition_runs_every_sweep(monkeypatch):
     g = torch.Generator().manual_seed(1)
     y, _ = clusters(g)
     calls = counting(monkeypatch)
-    DPSampler(prior_for(y)).fit(y, 6, g, settle=6)
+    DPSampler(clustering_prior(y)).fit(y, 6, g, settle=6)
     assert len(calls) == 6
 
 
 def test_no_settle_draws_as_before():
     # settle=None is the plain loop: the same draws as a chain without the argument.
     y, _ = clusters(torch.Generator().manual_seed(2))
-    sampler = DPSampler(prior_for(y))
+    sampler = DPSampler(clustering_prior(y))
     a = sampler.fit(y, 7, torch.Generator().manual_seed(3))
     b = sampler.fit(y, 7, torch.Generator().manual_seed(3), settle=None)
     assert torch.equal(a.labels, b.labels) and torch.equal(a.means, b.means)
@@ -90,12 +79,7 @@ def test_bad_settle_is_refused(bad):
         DipoleOptions(settle=bad)
     y, _ = clusters(torch.Generator().manual_seed(0))
     with pytest.raises(ValueError, match="settle"):
-        DPSampler(prior_for(y)).fit(y, 3, settle=bad)
-
-
-def two_optima(theta):
-    theta = theta.double()
-    return -100.0 * torch.minimum((theta - 1).pow(2).sum(-1), (theta + 1).pow(2).sum(-1))
+        DPSampler(clustering_prior(y)).fit(y, 3, settle=bad)
 
 
 @pytest.mark.parametrize("seed", range(3))
