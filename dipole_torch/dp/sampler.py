@@ -175,13 +175,12 @@ class DPSampler:
             )
         check_count(settle, "settle", optional=True)
         chain = self.to_chain(state)
-        if settle is None:
-            for _ in range(num_sweeps):
-                chain = self.sweep(y, chain, generator)
-            return self.to_state(chain)
-        partition, unchanged = _partition(state.labels), 0
+        partition = None if settle is None else _partition(state.labels)
+        unchanged = 0
         for _ in range(num_sweeps):
             chain = self.sweep(y, chain, generator)
+            if settle is None:
+                continue
             current = _partition(self.to_state(chain).labels)
             unchanged = unchanged + 1 if current == partition else 0
             partition = current
