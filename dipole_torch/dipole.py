@@ -121,7 +121,7 @@ class Dipole(PolicySearch):
         # The mechanisms, one object each ("off" is an object too).
         self.importance = make_importance(options.importance)
         self.exploration = make_exploration(options.exploration, d)
-        self.scouting = Scouting(options.explore, options.max_sampled)
+        self.scouting = Scouting(options.explore, options.max_sampled, options.restarts)
         self.vetting = make_vetting(
             options.hill_valley, d, self.device, options.pair_points, options.max_policies,
             self.cluster_every,

@@ -93,3 +93,48 @@ def test_waiting_policies_get_their_turn_and_every_optimum_converges(seed):
     means = opt.policy_means[:, 0]
     for optimum in OPTIMA:
         assert bool(((means - optimum).abs() < 1e-3).any()), f"{optimum}: {means.tolist()}"
+
+
+# ---------------------------------------------------------------- restarts
+def restart_scouts(restarts: str, bounds, n0: int = 400) -> tuple[Dipole, torch.Tensor]:
+    """The scouts of a restart (every policy retired) of a 2-D DIPOLE started at θ0 = 4 with
+    Σ_start std 0.5, and the optimizer."""
+    opt = Dipole(
+        torch.full((2,), 4.0, dtype=DTYPE),
+        torch.full((2,), 0.5, dtype=DTYPE),
+        n0=n0,
+        bounds=bounds,
+        restarts=restarts,
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, -(theta - 4.0).square().sum(-1))
+    opt.policy_set.active = torch.zeros_like(opt.policy_set.active)  # every policy retired
+    theta = opt.ask()
+    assert bool((opt.asked_owner == -1).all()) and theta.shape[0] == n0  # a fresh n0 of scouts
+    return opt, theta
+
+
+def test_a_restart_in_a_finite_box_is_uniform_in_the_box():
+    # θ0 sits near a corner: N(θ0, Σ_start) would leave most of the box unvisited.
+    _, theta = restart_scouts("box", (-5.0, 5.0))
+    assert bool(((theta >= -5.0) & (theta <= 5.0)).all())
+    # Uniform on [-5, 5]²: each quadrant about a quarter (400 draws: 100 ± 9 each).
+    quadrants = torch.bincount(2 * (theta[:, 0] > 0).long() + (theta[:, 1] > 0).long(), minlength=4)
+    assert bool((quadrants > 60).all()), quadrants
+    assert abs(float(theta.mean())) < 0.6
+
+
+@pytest.mark.parametrize(
+    "restarts, bounds", [("start", (-5.0, 5.0)), ("box", None), ("box", (-5.0, float("inf")))]
+)
+def test_a_restart_without_a_finite_box_draws_from_the_start_distribution(restarts, bounds):
+    # "start", no box, or a box open on one side: N(θ0, Σ_start), as the first batch.
+    _, theta = restart_scouts(restarts, bounds)
+    assert float((theta - 4.0).abs().max()) < 5 * 0.5 + 1e-9
+    assert abs(float(theta.mean()) - 4.0) < 0.1
+
+
+def test_a_bad_restarts_value_is_refused():
+    with pytest.raises(ValueError, match="restarts"):
+        build(None, restarts="uniform")

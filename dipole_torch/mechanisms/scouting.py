@@ -10,6 +10,12 @@
   per policy sample on average; the clustering puts a scout that lies on another hill in a
   component of its own, a candidate policy. When every policy has retired, the next ask is
   a fresh n0 of them: a restart (an empty ask would end the run).
+* Restarts (``restarts``): from N(θ0, Σ_start) by default (``"start"``). With ``"box"`` and
+  a box finite on every side, a restart's scouts are drawn uniformly in the box, as NMMSO's
+  and HillVallEA's new samples are: the optima a run has not found yet are often where
+  N(θ0, Σ_start) rarely reaches (on Vincent's function, the narrow basins near the box's
+  edge), and the held ones keep their policies. The first batch is always N(θ0, Σ_start)
+  (Algorithm 2).
 """
 
 from __future__ import annotations
@@ -35,11 +41,14 @@ class Scouting:
     Args:
         explore: scouts per policy sample, in [0, 1] (0: none).
         max_sampled: policies sampled in one ask at most (``None``: every active one).
+        restarts: ``"box"`` (a restart's scouts uniform in a finite box) or ``"start"``
+            (from N(θ0, Σ_start)).
     """
 
-    def __init__(self, explore: float, max_sampled: int | None):
+    def __init__(self, explore: float, max_sampled: int | None, restarts: str = "start"):
         self.explore = float(explore)
         self.max_sampled = None if max_sampled is None else int(max_sampled)
+        self.restarts = restarts
 
     def sampled_policies(self, search: PolicySearch) -> Tensor:
         """``[K_sampled]`` the active policies that draw a sample at the next ask: all of
@@ -61,6 +70,20 @@ class Scouting:
         return math.floor(self.explore * (before + sampled)) - math.floor(self.explore * before)
 
     def draw_scouts(self, search: PolicySearch, count: int) -> tuple[Tensor, Tensor]:
-        """``count`` scouts from N(θ0, Σ_start): ``([count, D], owner [count])``."""
-        theta = draw_gaussian(search.theta0, search.sigma_start, (count,), search.generator)
+        """``count`` scouts: ``([count, D], owner [count])``, from N(θ0, Σ_start), or
+        uniform in the box for a restart (no policy active) with ``restarts="box"`` and a
+        box finite on every side."""
+        box = search.box
+        if (
+            self.restarts == "box"
+            and box is not None
+            and not bool(search.active.any())
+            and bool(torch.isfinite(box[0]).all() & torch.isfinite(box[1]).all())
+        ):
+            lower, upper = box
+            u = torch.rand(count, search.dim, generator=search.generator, dtype=lower.dtype,
+                           device=lower.device)  # fmt: skip
+            theta = lower + (upper - lower) * u
+        else:
+            theta = draw_gaussian(search.theta0, search.sigma_start, (count,), search.generator)
         return theta, torch.full_like(theta[:, 0], NO_POLICY, dtype=torch.long)

@@ -72,6 +72,8 @@ ADDED_KEYS = {
     "algo.optimizer.refine_share": 0.2,
     # Runs from before a clustering could end once its partition settled.
     "algo.optimizer.settle": None,
+    # Runs from before restarts could draw uniformly in a finite box.
+    "algo.optimizer.restarts": "start",
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
