@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from dipole_torch.archive import NO_POLICY
-from dipole_torch.sampling import draw_gaussian
+from dipole_torch.sampling import draw_gaussian, uniforms
 
 if TYPE_CHECKING:
     from dipole_torch.search import PolicySearch
@@ -81,9 +81,9 @@ class Scouting:
             and bool(torch.isfinite(box[0]).all() & torch.isfinite(box[1]).all())
         ):
             lower, upper = box
-            u = torch.rand(count, search.dim, generator=search.generator, dtype=lower.dtype,
-                           device=lower.device)  # fmt: skip
-            theta = lower + (upper - lower) * u
+            # (Drawn on the generator's device and moved, as every draw of the library.)
+            u = uniforms(count * search.dim, search.generator, lower.device)
+            theta = lower + (upper - lower) * u.reshape(count, search.dim)
         else:
             theta = draw_gaussian(search.theta0, search.sigma_start, (count,), search.generator)
         return theta, torch.full_like(theta[:, 0], NO_POLICY, dtype=torch.long)
