@@ -45,7 +45,7 @@ class Scouting:
             (from N(θ0, Σ_start)).
     """
 
-    def __init__(self, explore: float, max_sampled: int | None, restarts: str = "start"):
+    def __init__(self, explore: float, max_sampled: int | None, restarts: str):
         self.explore = float(explore)
         self.max_sampled = None if max_sampled is None else int(max_sampled)
         self.restarts = restarts
