@@ -8,8 +8,8 @@ import torch
 from torch import Tensor
 from torch.distributions import MultivariateNormal
 
-from dipole_torch.gaussian import DTYPE, draw_normal_precision, spd_inverse, symmetric
-from dipole_torch.sampling import _to, inverse_wishart, wishart
+from dipole_torch.gaussian import DTYPE, symmetric
+from dipole_torch.sampling import _to, bartlett_factor, inverse_wishart, inverse_wishart_from_factor
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
 
 
@@ -169,31 +169,42 @@ class NormalInverseWishartPrior:
             generator: source of the draws.
         """
         d, k = self.dim, means.shape[0]
+        device = means.device
+        where = generator.device if generator is not None else device
+        # The update's random numbers at once: μ0's normals, then the Bartlett factors of
+        # Σ0's inverse-Wishart and Ψ0's Wishart draws.
+        normals = _to(torch.randn(d, 1, generator=generator, dtype=DTYPE, device=where), device)
+        degrees = torch.tensor([d + 3.0 + k, d + 1.0 + k * self.df], dtype=DTYPE, device=device)
+        bartlett = bartlett_factor(degrees, d, generator)  # [2, D, D]
         # μ0 | Σ0, {μ_k}
-        hyper_precision = initial._mean_covariance_inverse()
-        spread_precision = self._mean_covariance_inverse()
-        precision = hyper_precision + k * spread_precision
+        hyper_precision = initial._mean_precision()
+        spread_precision = self._mean_precision()
         # loc = P⁻¹ (Σ_h⁻¹ μ0_init + Σ0⁻¹ Σ_k μ_k), written about μ0_init so that large offsets
         # of the means cancel before the solve rather than after it.
-        rhs = spread_precision @ (means - initial.mean_loc).sum(0)
-        chol = torch.linalg.cholesky(precision)
-        loc = initial.mean_loc + torch.cholesky_solve(rhs[:, None], chol).squeeze(-1)
-        mean_loc = draw_normal_precision(loc, chol, generator)
+        rhs = spread_precision @ (means - initial.mean_loc).sum(0, keepdim=True).mT
+        # (Positive definite by construction, as the scales below: factorised without the
+        # error check's cost.)
+        chol = torch.linalg.cholesky_ex(hyper_precision + k * spread_precision)[0]
+        # μ0 = loc + L⁻ᵀ z = μ0_init + L⁻ᵀ (L⁻¹ rhs + z): covariance L⁻ᵀ L⁻¹ = P⁻¹.
+        half = torch.linalg.solve_triangular(chol, rhs, upper=False) + normals
+        step = torch.linalg.solve_triangular(chol.mT, half, upper=True)
+        mean_loc = initial.mean_loc + step.squeeze(-1)
         # Σ0 | μ0, {μ_k} (terms of the initial prior alone are memoised on it: the same at
-        # every sweep of a run)
+        # every sweep of a run; only the lower triangle of the scale is read)
         centred = means - mean_loc
-        scale_s = initial._memo("twice_mean", "mean_covariance", lambda m: 2.0 * m) + (
-            centred.T @ centred
-        )
-        mean_covariance = self.sample_inverse_wishart(d + 3 + k, symmetric(scale_s), generator)
-        # Ψ0 | {Σ_k}
+        scale_s = initial._memo("twice_mean", "mean_covariance", lambda m: 2.0 * m)
+        scale_s_tril = torch.linalg.cholesky_ex(scale_s + centred.mT @ centred)[0]
+        mean_covariance = inverse_wishart_from_factor(bartlett[0], scale_s_tril)
+        # Ψ0 | {Σ_k} ~ Wishart(ν_h + K ν0, P⁻¹), P = V⁻¹ + Σ_k Σ_k⁻¹: W = (M A)(M A)ᵀ for any
+        # M Mᵀ = P⁻¹; with P = L Lᵀ, M = L⁻ᵀ (one triangular solve, no inverse of P).
         hyper_df = d + 1.0
         hyper_scale_precision = initial._memo(
             "hyper_precision", "scale", lambda _: hyper_df * initial._scale_inverse()
         )
-        posterior_precision = hyper_scale_precision + spd_inverse(covariances).sum(0)
-        posterior_scale_tril = torch.linalg.cholesky(spd_inverse(symmetric(posterior_precision)))
-        scale = wishart(hyper_df + k * self.df, posterior_scale_tril, generator)
+        precisions = torch.cholesky_inverse(torch.linalg.cholesky(covariances)).sum(0)
+        posterior_tril = torch.linalg.cholesky_ex(hyper_scale_precision + precisions)[0]
+        root = torch.linalg.solve_triangular(posterior_tril.mT, bartlett[1], upper=True)
+        scale = symmetric(root @ root.mT)
         # Built from draws that are positive definite by construction: the validation of
         # __post_init__ (a few Cholesky factorisations) would run once per sweep for nothing.
         prior = object.__new__(NormalInverseWishartPrior)
@@ -228,16 +239,10 @@ class NormalInverseWishartPrior:
         return self._memo("mean_tril", "mean_covariance", torch.linalg.cholesky)
 
     def _mean_precision(self) -> Tensor:
-        """``[D, D]`` Σ0⁻¹ from its factor, as computed (memoised; not to be modified)."""
+        """``[D, D]`` Σ0⁻¹ from its factor (memoised; not to be modified). Exactly symmetric:
+        ``cholesky_inverse`` fills one triangle and mirrors it."""
         return self._memo(
             "mean_precision", "mean_covariance", lambda _: torch.cholesky_inverse(self._mean_tril())
-        )
-
-    def _mean_covariance_inverse(self) -> Tensor:
-        """``[D, D]`` Σ0⁻¹ symmetrised, as ``spd_inverse`` computes
-        it (memoised)."""
-        return self._memo(
-            "mean_inverse", "mean_covariance", lambda _: symmetric(self._mean_precision())
         )
 
     def _scale_tril(self) -> Tensor:
@@ -245,12 +250,9 @@ class NormalInverseWishartPrior:
         return self._memo("scale_tril", "scale", torch.linalg.cholesky)
 
     def _scale_inverse(self) -> Tensor:
-        """``[D, D]`` Ψ0⁻¹ symmetrised, as ``spd_inverse`` computes
-        it (memoised)."""
+        """``[D, D]`` Ψ0⁻¹ from its factor (memoised; exactly symmetric)."""
         return self._memo(
-            "scale_inverse",
-            "scale",
-            lambda _: symmetric(torch.cholesky_inverse(self._scale_tril())),
+            "scale_inverse", "scale", lambda _: torch.cholesky_inverse(self._scale_tril())
         )
 
     def state_dict(self) -> dict[str, Tensor | float]:

@@ -274,11 +274,8 @@ def inverse_wishart(
     generator: torch.Generator | None = None,
     symmetrize: bool = True,
 ) -> torch.Tensor:
-    """Σ ~ IW(df, Ψ) with Ψ = L Lᵀ, drawn as Σ = (L A⁻ᵀ)(L A⁻ᵀ)ᵀ.
-
-    Σ⁻¹ = L⁻ᵀ A Aᵀ L⁻¹ is Wishart(df, Ψ⁻¹) by Bartlett's decomposition (any factor M with
-    M Mᵀ = Ψ⁻¹ serves, here M = L⁻ᵀ), so E[Σ] = Ψ / (df − p − 1). One triangular solve and one
-    product per draw; Ψ is factorised once per distinct scale, never per draw.
+    """Σ ~ IW(df, Ψ) with Ψ = L Lᵀ, drawn as Σ = (L A⁻ᵀ)(L A⁻ᵀ)ᵀ
+    (``inverse_wishart_from_factor`` with a fresh Bartlett factor A).
 
     Args:
         df: ``[*batch]`` or scalar degrees of freedom, > p − 1.
@@ -295,9 +292,26 @@ def inverse_wishart(
     p = scale_tril.shape[-1]
     df, batch = _df_and_batch(df, scale_tril)
     factor = bartlett_factor(_expand(df, batch), p, generator)
+    return inverse_wishart_from_factor(factor, _expand(scale_tril, (*batch, p, p)), symmetrize)
+
+
+def inverse_wishart_from_factor(
+    factor: torch.Tensor, scale_tril: torch.Tensor, symmetrize: bool = True
+) -> torch.Tensor:
+    """``[*batch, p, p]`` Σ = (L A⁻ᵀ)(L A⁻ᵀ)ᵀ ~ IW(df, L Lᵀ) from a Bartlett factor A of
+    Wishart(df, I) (``bartlett_factor``).
+
+    Σ⁻¹ = L⁻ᵀ A Aᵀ L⁻¹ is Wishart(df, Ψ⁻¹) by Bartlett's decomposition (any factor M with
+    M Mᵀ = Ψ⁻¹ serves, here M = L⁻ᵀ), so E[Σ] = Ψ / (df − p − 1). One triangular solve and one
+    product per draw; Ψ is factorised once per distinct scale, never per draw.
+
+    Args:
+        factor: ``[*batch, p, p]`` lower-triangular A.
+        scale_tril: ``[*batch, p, p]`` lower Cholesky factor L of Ψ.
+        symmetrize: see ``inverse_wishart``.
+    """
     # B = A⁻¹ Lᵀ = (L A⁻ᵀ)ᵀ, so Σ = Bᵀ B.
-    upper = _expand(scale_tril.transpose(-1, -2), (*batch, p, p))
-    root = torch.linalg.solve_triangular(factor, upper, upper=False)
+    root = torch.linalg.solve_triangular(factor, scale_tril.transpose(-1, -2), upper=False)
     sigma = root.transpose(-1, -2) @ root
     return 0.5 * (sigma + sigma.transpose(-1, -2)) if symmetrize else sigma
 

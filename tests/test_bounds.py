@@ -68,9 +68,11 @@ def test_a_told_row_outside_the_box_raises_and_changes_nothing():
     opt.tell(theta, uphill(theta))
     theta = opt.ask()
     bad = theta.clone()
-    bad[1, 1] = 0.75
+    row = theta.shape[0] - 1  # (a policy's sample, or a scout or probe)
+    bad[row, 1] = 0.75
     before = opt.state_dict()
-    with pytest.raises(ValueError, match=r"theta row 1 lies outside bounds on axis 1: 0.75"):
+    message = rf"theta row {row} lies outside bounds on axis 1: 0.75"
+    with pytest.raises(ValueError, match=message):
         opt.tell(bad, uphill(theta))
     after = opt.state_dict()
     assert after["trials"] == before["trials"]

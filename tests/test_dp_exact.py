@@ -23,6 +23,7 @@ from scipy import integrate
 from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
 from dipole_torch.dp import conditionals
 from dipole_torch.dp.slice import SliceChain
+from dipole_torch.sampling import inverse_wishart_from_factor
 
 F64 = torch.float64
 
@@ -193,23 +194,32 @@ def test_slice_sampler_matches_the_exact_partition_posterior(reg, psi0):
     assert 0.5 * np.abs(frequency - exact).sum() < 0.08, (exact, frequency)
 
 
+def step_draws(prior, counts, seed):
+    """One alternation's Bartlett factors and log-uniforms for ``counts`` components."""
+    draws = conditionals.ParameterDraws.draw(prior, counts, 1, torch.Generator().manual_seed(seed))
+    return draws.bartlett[0], draws.log_uniforms[0]
+
+
 def test_covariance_step_without_regularisation_is_the_gibbs_draw():
     # R = 0: ρ ≡ 1, every proposal is accepted, and the draw is the conjugate IW draw.
     prior = fixed_prior(0.0)
     counts = torch.tensor([1.0, 3.0, 7.0], dtype=F64)
     scatter = torch.tensor([0.1, 2.0, 30.0], dtype=F64)[:, None, None]
     covs = torch.tensor([0.01, 1.0, 100.0], dtype=F64)[:, None, None]
-    g = torch.Generator().manual_seed(0)
-    new, accepted = conditionals.covariance_step(prior, covs, counts, scatter, g)
+    bartlett, log_u = step_draws(prior, counts, 0)
+    current = conditionals.Covariances.of(covs)
+    new, accepted = conditionals.covariance_step(prior, current, counts, scatter, bartlett, log_u)
     assert accepted.all()
-    g = torch.Generator().manual_seed(0)
-    plain = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, g)
-    assert torch.equal(new, plain)
+    plain = inverse_wishart_from_factor(bartlett, torch.linalg.cholesky(prior.scale + scatter))
+    assert torch.equal(new.covs, plain)
+    torch.testing.assert_close(new.tril, plain.sqrt())
+    torch.testing.assert_close(new.precisions, 1.0 / plain)
 
 
-def test_regularisation_log_weight_matches_the_densities():
-    # Σ_i log N(y_i; μ, Σ + R) − log N(y_i; μ, Σ) from the scatter, against direct densities;
-    # −inf for a Σ outside the support, where the MH step then accepts any proposal.
+def test_regularisation_weight_matches_the_densities():
+    # log ρ(Σ) = Σ_i log N(y_i; μ, Σ + R) − log N(y_i; μ, Σ) from the scatter, against direct
+    # densities; a Σ outside the support has density 0, where the MH step then accepts any
+    # proposal.
     g = torch.Generator().manual_seed(1)
     d = 3
     a = torch.randn(2, d, d, generator=g, dtype=F64)
@@ -220,28 +230,51 @@ def test_regularisation_log_weight_matches_the_densities():
     labels = torch.tensor([0, 1, 1, 0, 1, 1, 1])
     scatter = conditionals.scatter_matrices(y, labels, means)
     counts = torch.bincount(labels).to(F64)
-    weight = conditionals._regularisation_log_weight(covs, reg, counts, scatter)
+
+    def log_weight(c):  # log ρ from the step's own function
+        plain, regularised = conditionals.Covariances.of(c), conditionals.Covariances.of(c + reg)
+        log_lik = conditionals.log_likelihoods(
+            torch.cat((plain.tril, regularised.tril)),
+            torch.cat((plain.precisions, regularised.precisions)),
+            counts.repeat(2),
+            scatter.repeat(2, 1, 1),
+        )
+        return log_lik[2:] - log_lik[:2]
 
     def log_lik(c):
         dist = torch.distributions.MultivariateNormal(means[labels], c[labels])
         return torch.zeros(2, dtype=F64).index_add_(0, labels, dist.log_prob(y))
 
+    weight = log_weight(covs)
     torch.testing.assert_close(weight, log_lik(covs + reg) - log_lik(covs))
-    outside = covs.clone()
-    outside[1] = -torch.eye(d, dtype=F64)
-    weight = conditionals._regularisation_log_weight(outside, reg, counts, scatter)
-    assert weight[1] == -math.inf and torch.isfinite(weight[0])
+    # The step's acceptance is min(1, ρ(Σ')/ρ(Σ)): from the weights of both, by hand.
     prior = NormalInverseWishartPrior(
         torch.zeros(d, dtype=F64), covs[0], float(d + 3), 2.0 * covs[0], reg
     )
-    new, accepted = conditionals.covariance_step(prior, outside + reg, counts, scatter, g)
+    bartlett, log_u = step_draws(prior, counts, 2)
+    current = conditionals.Covariances.of(covs + reg)
+    new, accepted = conditionals.covariance_step(prior, current, counts, scatter, bartlett, log_u)
+    proposal = inverse_wishart_from_factor(bartlett, torch.linalg.cholesky(prior.scale + scatter))
+    assert torch.equal(accepted, log_u < log_weight(proposal) - weight)
+    wide = accepted[:, None, None]
+    torch.testing.assert_close(new.covs, torch.where(wide, proposal + reg, covs + reg))
+    torch.testing.assert_close(new.precisions, torch.linalg.inv(new.covs))
+    torch.testing.assert_close(new.tril, torch.linalg.cholesky(new.covs))
+    # A current Σ outside the support (Σ + R not above R): every proposal is accepted.
+    outside = covs.clone()
+    outside[1] = -torch.eye(d, dtype=F64)
+    current = outside + reg
+    # (any factor and inverse: the current's weight is masked once its Σ fails to factorise)
+    given = conditionals.Covariances.of(current, torch.eye(d, dtype=F64).expand(2, d, d))
+    zeros = torch.zeros(2, dtype=F64)
+    _, accepted = conditionals.covariance_step(prior, given, counts, scatter, bartlett, zeros)
     assert accepted[1]
     # Without the correction (exact=False): the conjugate draw + R, always.
-    state = g.get_state()
-    new, accepted = conditionals.covariance_step(prior, covs + reg, counts, scatter, g, exact=False)
-    g.set_state(state)
-    plain = prior.sample_inverse_wishart(prior.df + counts, prior.scale + scatter, g)
-    assert accepted.all() and torch.equal(new, plain + reg)
+    current = conditionals.Covariances.of(covs + reg)
+    new, accepted = conditionals.covariance_step(
+        prior, current, counts, scatter, bartlett, log_u, exact=False
+    )
+    assert accepted.all() and torch.equal(new.covs, proposal + reg)
 
 
 def test_fixed_prior_stays_fixed():

@@ -7,6 +7,12 @@ Hence μ | Σ, y is Normal (``mean_conditional``), Σ | μ, y has no closed form
 R ≠ 0 and is sampled by an independence Metropolis-Hastings step
 (``covariance_step``).
 
+A sweep makes a few such steps for a few components: the cost is the number of tensor
+calls, not their arithmetic. So every random number of the step is drawn up front
+(``ParameterDraws``), each component's covariance travels with its Cholesky factor (the μ
+step, the Metropolis-Hastings weights and the next sweep's likelihoods all need it), and
+the four log-likelihood terms of the Metropolis-Hastings ratio are one batched call.
+
 Every sum over points is taken about a centre (the prior mean, the component mean) rather
 than from raw sums: at offsets of 1e6 the raw sums carry no digits of a spread of 1e-2.
 """
@@ -14,23 +20,28 @@ than from raw sums: at offsets of 1e6 the raw sums carry no digits of a spread o
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-from dipole_torch.gaussian import DTYPE, draw_normal_precision, symmetric
+from dipole_torch.gaussian import DTYPE
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.sampling import _to
+from dipole_torch.sampling import _to, bartlett_factor, inverse_wishart_from_factor
 
 if TYPE_CHECKING:
     from dipole_torch.dp.state import DPMixtureState
 
 __all__ = [
+    "Covariances",
+    "ParameterDraws",
     "covariance_step",
     "data_mean",
+    "draw_mean",
+    "log_likelihoods",
     "mean_conditional",
+    "mean_location",
     "posterior_point_estimate",
     "resample_parameters",
     "residual_sums",
@@ -57,17 +68,16 @@ def scatter_matrices(y: Tensor, labels: Tensor, means: Tensor) -> Tensor:
 
     From centred residuals: Σ y yᵀ − 2 (Σ y) μᵀ + n μ μᵀ from raw sums cancels
     catastrophically at large offsets (1e12 against a scatter of 1e-4 at θ ≈ 1e6) and can
-    leave the inverse-Wishart scale indefinite.
+    leave the inverse-Wishart scale indefinite. (Exactly symmetric: each outer product is,
+    and both triangles add the same numbers in the same order.)
     """
-    d = y.shape[-1]
     centred = y - means[labels]
-    scatter = torch.zeros(means.shape[0], d, d, dtype=y.dtype, device=y.device)
-    scatter.index_add_(0, labels, centred[:, :, None] * centred[:, None, :])
-    return symmetric(scatter)
+    scatter = torch.zeros(means.shape[0], y.shape[-1], y.shape[-1], dtype=y.dtype, device=y.device)
+    return scatter.index_add_(0, labels, centred[:, :, None] * centred[:, None, :])
 
 
 def mean_conditional(
-    prior: NormalInverseWishartPrior, covs: Tensor, counts: Tensor, residuals: Tensor
+    prior: NormalInverseWishartPrior, precisions: Tensor, counts: Tensor, residuals: Tensor
 ) -> tuple[Tensor, Tensor]:
     """μ | Σ, y ~ N(P⁻¹ (Σ0⁻¹ μ0 + Σ⁻¹ Σ y), P⁻¹), P = Σ0⁻¹ + n Σ⁻¹, batched over K.
 
@@ -75,101 +85,168 @@ def mean_conditional(
     cancellation of μ0-sized terms at large offsets.
 
     Args:
-        covs: ``[K, D, D]`` component covariances Σ (regularisation included).
+        precisions: ``[K, D, D]`` Σ⁻¹ of the component covariances (regularisation included).
         counts: ``[K]`` points per component.
         residuals: ``[K, D]`` Σ_{i in c} (y_i − μ0) (``residual_sums`` about μ0).
 
     Returns:
-        ``[K, D]`` the location and ``[K, D, D]`` the Cholesky factor of the precision P.
+        ``[K, D, 1]`` L⁻¹ Σ⁻¹ Σ_i (y_i − μ0) and ``[K, D, D]`` the Cholesky factor L of the
+        precision P: the location is μ0 + L⁻ᵀ of the first (``draw_mean``, ``mean_location``).
     """
-    prior_precision = prior._mean_precision()  # Σ0⁻¹, factorised once per prior
-    precision_k = torch.cholesky_inverse(torch.linalg.cholesky(covs))
-    precision = prior_precision + counts[:, None, None] * precision_k
-    precision = symmetric(precision)
-    rhs = (precision_k @ residuals[:, :, None]).squeeze(-1)
-    chol = torch.linalg.cholesky(precision)
-    loc = prior.mean_loc + torch.cholesky_solve(rhs[:, :, None], chol).squeeze(-1)
-    return loc, chol
+    # (Σ0⁻¹ and Σ⁻¹ from cholesky_inverse are exactly symmetric, and so is P: positive
+    # definite by construction, hence factorised without the error check's cost.)
+    precision = prior._mean_precision() + counts[:, None, None] * precisions
+    chol = torch.linalg.cholesky_ex(precision)[0]
+    half = torch.linalg.solve_triangular(chol, precisions @ residuals[:, :, None], upper=False)
+    return half, chol
+
+
+def mean_location(prior: NormalInverseWishartPrior, half: Tensor, chol: Tensor) -> Tensor:
+    """``[K, D]`` E[μ | Σ, y] = μ0 + L⁻ᵀ ``half`` from ``mean_conditional``'s pair."""
+    return prior.mean_loc + torch.linalg.solve_triangular(chol.mT, half, upper=True).squeeze(-1)
+
+
+def draw_mean(prior: NormalInverseWishartPrior, half: Tensor, chol: Tensor, normals: Tensor):
+    """``[K, D]`` μ ~ N(μ0 + L⁻ᵀ half, P⁻¹) from ``mean_conditional``'s pair and standard
+    ``normals: [K, D]``: μ0 + L⁻ᵀ (half + z), whose covariance is L⁻ᵀ L⁻¹ = P⁻¹."""
+    return mean_location(prior, half + normals[:, :, None], chol)
+
+
+@dataclass
+class ParameterDraws:
+    """The random numbers of ``steps`` alternations of the μ and Σ steps for K components,
+    drawn at once (three generator calls instead of four a step):
+
+    * ``normals [steps, K, D]``: the μ draws' standard normals;
+    * ``bartlett [steps, K, D, D]``: Bartlett factors of Wishart(ν0 + n_k, I) for the Σ
+      proposals IW(ν0 + n_k, Ψ0 + S_k) (``dipole_torch.sampling.bartlett_factor``);
+    * ``log_uniforms [steps, K]``: the Metropolis-Hastings acceptance draws, log U(0, 1).
+    """
+
+    normals: Tensor
+    bartlett: Tensor
+    log_uniforms: Tensor
+
+    @classmethod
+    def draw(
+        cls,
+        prior: NormalInverseWishartPrior,
+        counts: Tensor,
+        steps: int,
+        generator: torch.Generator | None,
+    ) -> ParameterDraws:
+        """Draws for ``steps`` alternations of the components with ``counts: [K]`` points
+        (on ``generator``'s device, moved to ``counts``')."""
+        k, d = counts.shape[0], prior.dim
+        device = counts.device
+        where = generator.device if generator is not None else device
+        normals = torch.randn(steps, k, d, generator=generator, dtype=DTYPE, device=where)
+        bartlett = bartlett_factor((prior.df + counts).expand(steps, k), d, generator)
+        uniforms = torch.rand(steps, k, generator=generator, dtype=DTYPE, device=where)
+        return cls(_to(normals, device), bartlett, _to(uniforms, device).log())
+
+
+@dataclass
+class Covariances:
+    """K component covariances Σ + R with their Cholesky factors and inverses, as the μ and
+    Σ steps use them: ``covs``, ``tril``, ``precisions``, all ``[K, D, D]``."""
+
+    covs: Tensor
+    tril: Tensor
+    precisions: Tensor
+
+    @classmethod
+    def of(cls, covs: Tensor, tril: Tensor | None = None) -> Covariances:
+        """From ``covs`` (and their factors when known)."""
+        tril = torch.linalg.cholesky(covs) if tril is None else tril
+        return cls(covs, tril, torch.cholesky_inverse(tril))
+
+
+def log_likelihoods(tril: Tensor, precisions: Tensor, counts: Tensor, scatter: Tensor) -> Tensor:
+    """``[B]`` Σ_i log N(y_i; μ, Σ) of each component's points up to −½ n D log 2π, from the
+    scatter S about μ: −½ (n log|Σ| + tr(Σ⁻¹ S)).
+
+    Args:
+        tril: ``[B, D, D]`` Cholesky factors of Σ; ``precisions``: ``[B, D, D]`` Σ⁻¹.
+        counts: ``[B]`` points per component; ``scatter``: ``[B, D, D]`` S.
+    """
+    half_log_det = tril.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    trace = (precisions * scatter).sum((-2, -1))  # tr(Σ⁻¹ S), both symmetric
+    return -(counts * half_log_det + 0.5 * trace)
 
 
 def covariance_step(
     prior: NormalInverseWishartPrior,
-    covs: Tensor,
+    current: Covariances,
     counts: Tensor,
     scatter: Tensor,
-    generator: torch.Generator | None,
+    bartlett: Tensor,
+    log_uniforms: Tensor,
     exact: bool = True,
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Covariances, Tensor]:
     """Σ | μ, y by independence Metropolis-Hastings, batched over K.
 
     The proposal is the unregularised conjugate draw Σ' ~ IW(ν0 + n, Ψ0 + S), S the scatter
     about μ; it is accepted with probability min(1, ρ(Σ') / ρ(Σ)), where
     ρ(Σ) = Π_i N(y_i; μ, Σ + R) / N(y_i; μ, Σ) is the target over the proposal density up to
-    a constant. With R = 0, ρ ≡ 1 and every proposal is accepted: the plain Gibbs draw.
+    a constant (``log_likelihoods`` of Σ + R less those of Σ). With R = 0, ρ ≡ 1 and every
+    proposal is accepted: the plain Gibbs draw.
 
     Args:
-        covs: ``[K, D, D]`` current Σ + R.
+        current: the current Σ + R (``Covariances``).
         counts: ``[K]`` points per component.
         scatter: ``[K, D, D]`` Σ_i (y_i − μ)(y_i − μ)ᵀ about the current means.
+        bartlett: ``[K, D, D]`` Bartlett factors of Wishart(ν0 + n, I) (``ParameterDraws``).
+        log_uniforms: ``[K]`` log U(0, 1) acceptance draws.
         exact: ``False`` accepts every proposal (the conjugate draw of the unregularised
             model, then + R: a different model, kept as an ablation).
 
     Returns:
-        ``[K, D, D]`` the new Σ + R, and ``[K]`` whether each proposal was accepted.
+        The new Σ + R (``Covariances``), and ``[K]`` whether each proposal was accepted.
     """
     reg = prior.regularization
-    # The acceptance uniforms are drawn with or without the test, so the rest of the chain
-    # is the same either way (identical for R = 0, where every proposal is accepted).
-    proposal, uniforms = prior.sample_inverse_wishart(
-        prior.df + counts, prior.scale + scatter, generator, num_uniforms=counts.shape[0]
-    )
-    uniforms = _to(uniforms, covs.device)
-    if not exact:
-        return proposal + reg, torch.ones_like(counts, dtype=torch.bool)
     k = counts.shape[0]
-    # Proposal and current state in one batched call (half the small-tensor ops).
-    both = _regularisation_log_weight(
-        torch.cat((proposal, covs - reg)),
-        reg,
-        torch.cat((counts, counts)),
-        torch.cat((scatter, scatter)),
-    )
-    log_ratio, log_current = both[:k], both[k:]
-    # A current Σ outside the support (Σ + R given from outside, Σ not positive definite) has
-    # target density 0: any proposal is accepted.
-    accept = (log_current == -math.inf) | (uniforms.log() < log_ratio - log_current)
-    return torch.where(accept[:, None, None], proposal + reg, covs), accept
-
-
-def _regularisation_log_weight(
-    covs: Tensor, regularization: Tensor, counts: Tensor, scatter: Tensor
-) -> Tensor:
-    """``[K]`` Σ_i log N(y_i; μ, Σ + R) − log N(y_i; μ, Σ) for ``covs: [K, D, D]`` Σ.
-
-    From the scatter S about μ: −½ [n (log|Σ + R| − log|Σ|) + tr(((Σ + R)⁻¹ − Σ⁻¹) S)].
-    Exactly 0 for R = 0 (both terms come from identical matrices); −inf where Σ is not
-    positive definite.
-    """
-    chol, info = torch.linalg.cholesky_ex(covs)
-    valid = info == 0
+    scale_tril = torch.linalg.cholesky_ex(prior.scale + scatter)[0]  # positive definite
+    proposal = inverse_wishart_from_factor(bartlett, scale_tril)
+    candidate = proposal + reg
+    if not exact:
+        accept = torch.ones(k, dtype=torch.bool, device=candidate.device)
+        return Covariances.of(candidate), accept
+    # Σ', Σ' + R and the current Σ factorised in one call, then inverted in one: with the
+    # current Σ + R's, the four terms of the ratio. (The state holds Σ + R; the current Σ is
+    # its difference with R.)
+    tril, info = torch.linalg.cholesky_ex(torch.cat((proposal, candidate, current.covs - reg)))
     # On CPU, where asking costs no sync, the masking is skipped when nothing needs it.
-    all_valid = covs.device.type == "cpu" and not bool(info.any())
-    if not all_valid:
-        eye = torch.eye(covs.shape[-1], dtype=covs.dtype, device=covs.device)
-        # Placeholders where Σ is not positive definite, masked out below.
-        chol = torch.where(valid[:, None, None], chol, eye)
-        covs = torch.where(valid[:, None, None], covs, eye)
-    chol_reg = torch.linalg.cholesky(covs + regularization)
-
-    def log_lik(factor: Tensor) -> Tensor:  # Σ_i log N(y_i; μ, L Lᵀ) up to −½ n D log 2π
-        log_det = 2.0 * factor.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        trace = torch.cholesky_solve(scatter, factor).diagonal(dim1=-2, dim2=-1).sum(-1)
-        return -0.5 * (counts * log_det + trace)
-
-    weight = log_lik(chol_reg) - log_lik(chol)
-    if all_valid:
-        return weight
-    return torch.where(valid, weight, torch.full_like(weight, -math.inf))
+    masked = current.covs.device.type != "cpu" or bool(info.any())
+    if masked:  # placeholders where a matrix did not factorise, masked out below
+        failed = info != 0
+        eye = torch.eye(tril.shape[-1], dtype=tril.dtype, device=tril.device)
+        tril = torch.where(failed[:, None, None], eye, tril)
+    precisions = torch.cholesky_inverse(tril)
+    log_lik = log_likelihoods(
+        torch.cat((tril, current.tril)),
+        torch.cat((precisions, current.precisions)),
+        torch.cat((counts, counts, counts, counts)),
+        torch.cat((scatter, scatter, scatter, scatter)),
+    ).view(2, 2, k)  # [proposal, current] x [Σ, Σ + R]
+    log_weight = log_lik[:, 1] - log_lik[:, 0]  # log ρ of the proposal and of the current
+    if masked:
+        # A Σ that did not factorise has target density 0: a current Σ outside the support
+        # (Σ + R given from outside) takes any proposal, a failed proposal is refused.
+        failed = failed.view(3, k)  # Σ', Σ' + R, current Σ
+        refused = failed[0] | failed[1]
+        log_weight = torch.where(torch.stack((refused, failed[2])), -math.inf, log_weight)
+        accept = (log_weight[1] == -math.inf) | (log_uniforms < log_weight[0] - log_weight[1])
+        accept = accept & ~refused
+    else:
+        accept = log_uniforms < log_weight[0] - log_weight[1]
+    wide = accept[:, None, None]
+    new = Covariances(
+        torch.where(wide, candidate, current.covs),
+        torch.where(wide, tril[k : 2 * k], current.tril),
+        torch.where(wide, precisions[k : 2 * k], current.precisions),
+    )
+    return new, accept
 
 
 def resample_parameters(
@@ -179,6 +256,7 @@ def resample_parameters(
     generator: torch.Generator | None,
     exact_covariance: bool = True,
     counts: Tensor | None = None,
+    tril: Tensor | None = None,
 ) -> DPMixtureState:
     """Algorithm 8's step 2: every component's (μ, Σ) redrawn given its points, batched over
     K, by ``steps`` alternations of the exact μ | Σ, y draw (``mean_conditional``) and
@@ -191,6 +269,7 @@ def resample_parameters(
         generator: source of all randomness.
         exact_covariance: apply the Metropolis-Hastings correction.
         counts: ``[K]`` float64 points per component, when the caller has them already.
+        tril: ``[K, D, D]`` Cholesky factors of the covariances, when the caller has them.
 
     Returns:
         The state with the new means and covariances (Σ + R).
@@ -199,14 +278,18 @@ def resample_parameters(
     labels, k = state.labels, state.num_components
     if counts is None:
         counts = torch.bincount(labels, minlength=k).to(DTYPE)
+    covariances = Covariances.of(state.covariances, tril)
     residuals = residual_sums(y, labels, prior.mean_loc, k)
-    means, covs = state.means, state.covariances
-    for _ in range(steps):
-        loc, precision_tril = mean_conditional(prior, covs, counts, residuals)
-        means = draw_normal_precision(loc, precision_tril, generator)
+    draws = ParameterDraws.draw(prior, counts, steps, generator)
+    for step in range(steps):
+        half, chol = mean_conditional(prior, covariances.precisions, counts, residuals)
+        means = draw_mean(prior, half, chol, draws.normals[step])
         scatter = scatter_matrices(y, labels, means)
-        covs = covariance_step(prior, covs, counts, scatter, generator, exact_covariance)[0]
-    return replace(state, means=means, covariances=covs)
+        covariances, _ = covariance_step(
+            prior, covariances, counts, scatter, draws.bartlett[step], draws.log_uniforms[step],
+            exact_covariance,
+        )  # fmt: skip
+    return replace(state, means=means, covariances=covariances.covs)
 
 
 def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState:
@@ -229,5 +312,6 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
     dof = (prior.df + counts - prior.dim - 1)[:, None, None]
     covs = (prior.scale + scatter) / dof + prior.regularization
     residuals = residual_sums(y, labels, prior.mean_loc, k)
-    means = mean_conditional(prior, covs, counts, residuals)[0]
+    precisions = torch.cholesky_inverse(torch.linalg.cholesky(covs))
+    means = mean_location(prior, *mean_conditional(prior, precisions, counts, residuals))
     return replace(state, means=means, covariances=covs)

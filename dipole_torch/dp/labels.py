@@ -23,9 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dipole_torch.dp.reward_weights import RewardRegression, reward_weights
 from dipole_torch.dp.state import DPMixtureState
-from dipole_torch.gaussian import DTYPE, gaussian_log_prob, log_prob_tril
+from dipole_torch.gaussian import DTYPE, log_prob_tril
 from dipole_torch.prior import NormalInverseWishartPrior
 
 __all__ = ["AuxiliaryDraws", "component_scores", "label_logits"]
@@ -48,18 +47,23 @@ def label_logits(log_weight, scores):
     return log_weight + scores
 
 
+LogRewards = Callable[[Tensor], Tensor]  # component means [..., D] -> log r_c [...] (eq. 6)
+
+
 @dataclass
 class AuxiliaryDraws:
     """Auxiliary components drawn from H for a chunk of C points: ``means [C, m, D]``,
-    ``covs`` (symmetric up to rounding: only their lower triangles and factors are used),
-    their Cholesky factors ``tril [C, m, D, D]``, ``log_r [C, m]`` (log r_c, 0 unweighted)
-    and ``logits [C, m]``: the auxiliary slots' label logits at their points."""
+    symmetric ``covs`` and their Cholesky factors ``tril [C, m, D, D]``, ``log_r [C, m]``
+    (log r_c, 0 unweighted) and ``logits [C, m]``: the auxiliary slots' label logits at
+    their points. ``starting_log_r [K]``: log r_c of the sweep's starting components, when
+    they were asked for with the draws (one regression call for both)."""
 
     means: Tensor
     covs: Tensor
     tril: Tensor
     log_r: Tensor
     logits: Tensor
+    starting_log_r: Tensor | None = None
 
     @classmethod
     def draw(
@@ -68,46 +72,45 @@ class AuxiliaryDraws:
         points: Tensor,
         count: int,
         log_aux_prior: float,
-        reward: tuple[RewardRegression, Tensor] | None,
+        log_rewards: LogRewards | None,
         generator: torch.Generator | None,
+        starting: Tensor | None = None,
     ) -> AuxiliaryDraws:
         """Algorithm 8's fresh draws: ``count`` components from H for each of the C
         ``points: [C, D]`` (``means [C, count, D]``, ``logits [C, count]``).
 
         Args:
-            reward: eq. 6's ``(regression, weights [N])``, the sweep's reward regression and
-                the data's reward weights; ``None``: eq. 5.
+            log_rewards: eq. 6's log r_c of component means (``ComponentRewards``);
+                ``None``: eq. 5.
+            starting: ``[K, D]`` means of the sweep's starting components, whose log r_c
+                are wanted too (``starting_log_r``).
         """
         size, d = points.shape[0], points.shape[-1]
-        # Unsymmetrised: only the lower triangles are read, until a component opens.
-        means, covs = prior.sample(size * count, generator, symmetrize=False)
-        means, covs = means.reshape(size, count, d), covs.reshape(size, count, d, d)
+        means, covs = prior.sample(size * count, generator)
         tril = torch.linalg.cholesky(covs)
-        log_lik = log_prob_tril(points[:, None, :], means, tril)
-        log_r = torch.zeros_like(log_lik)
-        if reward is not None:
-            log_r = reward_weights(reward[0], means, weights=reward[1])
-        return cls(means, covs, tril, log_r, _auxiliary_logits(log_aux_prior, log_lik, log_r))
+        log_r, starting_log_r = _log_rewards(log_rewards, means, starting)
+        means, covs = means.view(size, count, d), covs.view(size, count, d, d)
+        tril, log_r = tril.view(size, count, d, d), log_r.view(size, count)
+        logits = _auxiliary_logits(
+            log_aux_prior, log_prob_tril(points[:, None, :], means, tril), log_r
+        )
+        return cls(means, covs, tril, log_r, logits, starting_log_r)
 
-    @classmethod
-    def shared(
-        cls,
-        prior: NormalInverseWishartPrior,
-        y: Tensor,
-        count: int,
-        log_aux_prior: float,
-        reward: tuple[RewardRegression, Tensor] | None,
-        generator: torch.Generator | None,
-    ) -> AuxiliaryDraws:
-        """``count`` components from H shared by every point of ``y: [N, D]`` (``means
-        [count, D]``, ``logits [N, count]``): the re-used auxiliary components."""
-        means, covs = prior.sample(count, generator)
-        tril = torch.linalg.cholesky(covs)
-        log_r = torch.zeros(count, dtype=DTYPE)
-        if reward is not None:
-            log_r = reward_weights(reward[0], means, weights=reward[1])
-        log_lik = log_prob_tril(y[:, None, :], means, tril)
-        return cls(means, covs, tril, log_r, _auxiliary_logits(log_aux_prior, log_lik, log_r))
+
+def _log_rewards(
+    log_rewards: LogRewards | None, means: Tensor, starting: Tensor | None
+) -> tuple[Tensor, Tensor | None]:
+    """``[A]`` log r_c of the auxiliary ``means: [A, D]`` and ``[K]`` those of ``starting``
+    (``None`` when not asked for), from one call of ``log_rewards`` (zeros without it)."""
+    queries = means if starting is None else torch.cat((starting, means))
+    if log_rewards is None:
+        log_r = queries.new_zeros(queries.shape[0])
+    else:
+        log_r = log_rewards(queries)
+    if starting is None:
+        return log_r, None
+    k = starting.shape[0]
+    return log_r[k:], log_r[:k]
 
 
 def _auxiliary_logits(log_aux_prior: float, log_lik: Tensor, log_r: Tensor) -> Tensor:
@@ -117,14 +120,15 @@ def _auxiliary_logits(log_aux_prior: float, log_lik: Tensor, log_r: Tensor) -> T
 Auxiliary = Callable[[int, int], AuxiliaryDraws]  # (start, stop) -> draws for those points
 
 
-def starting_scores(y: Tensor, state: DPMixtureState, log_r: Tensor) -> Tensor:
+def starting_scores(y: Tensor, state: DPMixtureState, tril: Tensor, log_r: Tensor) -> Tensor:
     """``[N, K]`` ``component_scores`` of every point under the sweep's starting
-    components (fixed during the pass, as in Algorithm 8: one batched call)."""
-    return component_scores(gaussian_log_prob(y[:, None, :], state.means, state.covariances), log_r)
+    components (fixed during the pass, as in Algorithm 8: one batched call), from the
+    Cholesky factors ``tril: [K, D, D]`` of their covariances."""
+    return component_scores(log_prob_tril(y[:, None, :], state.means, tril), log_r)
 
 
 def pass_start(
-    y: Tensor, state: DPMixtureState, log_r: Tensor
+    y: Tensor, state: DPMixtureState, tril: Tensor, log_r: Tensor
 ) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
     """What the numpy label passes start from: ``labels`` and ``counts`` as lists,
     ``score [N, capacity]`` (``component_scores``; columns of components opened in the
@@ -137,7 +141,7 @@ def pass_start(
         counts[label] += 1
     capacity = max(2 * k, 8)
     score = np.full((n, capacity), -math.inf)
-    score[:, :k] = starting_scores(y, state, log_r).numpy()
+    score[:, :k] = starting_scores(y, state, tril, log_r).numpy()
     log_counts = np.full(capacity, -math.inf)
     with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
         log_counts[:k] = np.log(np.asarray(counts, dtype=float))
@@ -173,16 +177,22 @@ Slot = tuple[Tensor, Tensor, Tensor, float]  # μ, Σ, L, log r of a component o
 
 
 def slot_parameters(
-    state: DPMixtureState, opened: dict[int, Slot], k: int
-) -> tuple[Tensor, Tensor]:
-    """``[k, D]`` means and ``[k, D, D]`` covariances of all k slots: the sweep's starting
-    ones, overwritten by the components opened during the sweep (each slot's latest)."""
+    state: DPMixtureState, tril: Tensor, opened: dict[int, Slot], k: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``[k, D]`` means, ``[k, D, D]`` covariances and their Cholesky factors of all k
+    slots: the sweep's starting ones (factors ``tril``), overwritten by the components
+    opened during the sweep (each slot's latest)."""
     start = state.num_components
     if not opened and k == start:
-        return state.means, state.covariances  # nothing opened: the starting ones
-    means = torch.empty(k, state.means.shape[-1], dtype=DTYPE, device=state.means.device)
-    covs = torch.empty(k, *state.covariances.shape[-2:], dtype=DTYPE, device=means.device)
-    means[:start], covs[:start] = state.means, state.covariances
-    for slot, (mean, cov, _, _) in opened.items():
-        means[slot], covs[slot] = mean, cov
-    return means, covs
+        return state.means, state.covariances, tril  # nothing opened: the starting ones
+    d = state.means.shape[-1]
+    means = torch.empty(k, d, dtype=DTYPE, device=state.means.device)
+    covs = torch.empty(k, d, d, dtype=DTYPE, device=means.device)
+    trils = torch.empty(k, d, d, dtype=DTYPE, device=means.device)
+    means[:start], covs[:start], trils[:start] = state.means, state.covariances, tril
+    slots = list(opened)
+    index = torch.tensor(slots, device=means.device)
+    means[index] = torch.stack([opened[slot][0] for slot in slots])
+    covs[index] = torch.stack([opened[slot][1] for slot in slots])
+    trils[index] = torch.stack([opened[slot][2] for slot in slots])
+    return means, covs, trils

@@ -38,9 +38,9 @@ from dipole_torch.dp.labels import (
     slot_parameters,
 )
 from dipole_torch.dp.reuse import label_pass_reuse
-from dipole_torch.dp.reward_weights import RewardRegression, reward_weights
+from dipole_torch.dp.reward_weights import ComponentRewards
 from dipole_torch.dp.state import DPMixtureState
-from dipole_torch.gaussian import DTYPE, log_prob_tril, symmetric
+from dipole_torch.gaussian import DTYPE, log_prob_tril
 from dipole_torch.sampling import draw_categorical, draw_categorical_numpy, uniforms
 
 if TYPE_CHECKING:
@@ -90,46 +90,54 @@ def neal8_sweep(
     n, d = y.shape
     m = sampler.m
     prior = state.prior
-    reward = None
-    if sampler.reward_weighted:
-        weights = y[:, -1]
-        counts = torch.bincount(state.labels, minlength=state.num_components).to(DTYPE)
-        current = RewardRegression(counts, state.means, state.covariances)
-        log_r = reward_weights(current, state.means, weights=weights)
-        reward = (current, weights)
-    else:
-        log_r = torch.zeros(state.num_components, dtype=DTYPE, device=y.device)
+    log_rewards = ComponentRewards(state, y[:, -1]) if sampler.reward_weighted else None
+    tril = torch.linalg.cholesky(state.covariances)  # the labels' likelihoods, then the μ step
     log_aux_prior = math.log(sampler.alpha / m)
     draws = uniforms(n, generator, y.device)
+    # The starting components' log r_c come with the first auxiliary draws (one regression).
     if sampler.auxiliary == "reuse":
         if y.device.type != "cpu":
             raise ValueError("auxiliary='reuse' runs on the CPU only")
         slot_draws = uniforms(n, generator, y.device)
 
-        def fresh(count: int) -> AuxiliaryDraws:
-            return AuxiliaryDraws.shared(prior, y, count, log_aux_prior, reward, generator)
+        def draw(count: int) -> tuple[Tensor, Tensor, Tensor]:
+            means, covs = prior.sample(count, generator)
+            return means, covs, torch.linalg.cholesky(covs)
 
-        labels, means, covs, counts = label_pass_reuse(
-            y, state, log_r, fresh, draws, slot_draws, log_aux_prior, m
+        labels, means, covs, tril, counts = label_pass_reuse(
+            y, state, tril, log_rewards, draw, draws, slot_draws, log_aux_prior, m
         )
     else:
+        chunk = chunk_size(n, m, d)
+        first = AuxiliaryDraws.draw(
+            prior, y[:chunk], m, log_aux_prior, log_rewards, generator, state.means
+        )
 
         def auxiliary(start: int, stop: int) -> AuxiliaryDraws:
-            return AuxiliaryDraws.draw(prior, y[start:stop], m, log_aux_prior, reward, generator)
+            if start == 0:
+                return first
+            return AuxiliaryDraws.draw(
+                prior, y[start:stop], m, log_aux_prior, log_rewards, generator
+            )
 
         label_pass = label_pass_numpy if y.device.type == "cpu" else label_pass_sync_free
-        labels, means, covs, counts = label_pass(
-            y, state, log_r, auxiliary, draws, log_aux_prior, chunk_size(n, m, d)
+        labels, means, covs, tril, counts = label_pass(
+            y, state, tril, first.starting_log_r, auxiliary, draws, log_aux_prior, chunk
         )
     occupied = counts > 0
     # On CPU (no sync to ask) the relabelling is skipped when no component emptied.
     if y.device.type != "cpu" or not bool(occupied.all()):
         remap = torch.cumsum(occupied.long(), 0) - 1
         labels = remap[labels]
-        means, covs, counts = means[occupied], covs[occupied], counts[occupied]
+        means, covs, tril, counts = (
+            means[occupied],
+            covs[occupied],
+            tril[occupied],
+            counts[occupied],
+        )
     new_state = DPMixtureState(labels, means, covs, prior)
     new_state = resample_parameters(
-        y, new_state, sampler.inner_steps, generator, sampler.exact_covariance, counts=counts
+        y, new_state, sampler.inner_steps, generator, sampler.exact_covariance, counts, tril
     )
     if sampler.update_prior:
         new_state.prior = prior.updated(
@@ -141,6 +149,7 @@ def neal8_sweep(
 def label_pass_numpy(
     y: Tensor,
     state: DPMixtureState,
+    tril: Tensor,
     log_r: Tensor,
     auxiliary: Auxiliary,
     uniforms: Tensor,
@@ -152,6 +161,7 @@ def label_pass_numpy(
     Args:
         y: ``[N, D]`` data (CPU, float64).
         state: the sweep's starting state (labels ``[N]``, K components).
+        tril: ``[K, D, D]`` Cholesky factors of its covariances.
         log_r: ``[K]`` log r_c of the starting components (zeros unweighted).
         auxiliary: ``(start, stop) -> AuxiliaryDraws`` fresh auxiliary draws for those points.
         uniforms: ``[N]`` the label draws' uniforms.
@@ -160,10 +170,10 @@ def label_pass_numpy(
 
     Returns:
         ``[N]`` labels in ``[0, k)``, the k slots' ``[k, D]`` means, ``[k, D, D]``
-        covariances and ``[k]`` counts (empty slots included).
+        covariances and their Cholesky factors, and ``[k]`` counts (empty slots included).
     """
     n, k = y.shape[0], state.num_components
-    labels, counts, score, log_counts = pass_start(y, state, log_r)
+    labels, counts, score, log_counts = pass_start(y, state, tril, log_r)
     logits = np.empty(0)  # reused buffer for one point's K + m logits
     u = uniforms.tolist()
     opened: dict[int, Slot] = {}  # slot -> μ, Σ, L, log r
@@ -177,9 +187,9 @@ def label_pass_numpy(
         live = [slot for slot in opened if counts[slot] > 0]
         if live:  # components opened in earlier chunks: their columns for this chunk
             mean = torch.stack([opened[slot][0] for slot in live])
-            tril = torch.stack([opened[slot][2] for slot in live])
+            factors = torch.stack([opened[slot][2] for slot in live])
             lr = torch.tensor([opened[slot][3] for slot in live], dtype=DTYPE)
-            column = component_scores(log_prob_tril(y[start:stop, None, :], mean, tril), lr)
+            column = component_scores(log_prob_tril(y[start:stop, None, :], mean, factors), lr)
             score[start:stop, live] = column.numpy()
         for i in range(start, stop):
             c = labels[i]
@@ -203,24 +213,25 @@ def label_pass_numpy(
                     k += 1
                     score, log_counts, logits = open_slot(counts, score, log_counts, logits, m)
                 r = i - start
-                mean, cov, tril = aux.means[r, j], symmetric(aux.covs[r, j]), aux.tril[r, j]
+                mean, factor = aux.means[r, j], aux.tril[r, j]
                 lr = float(aux.log_r[r, j])
-                opened[new] = (mean, cov, tril, lr)
+                opened[new] = (mean, aux.covs[r, j], factor, lr)
                 if i + 1 < stop:
                     score[i + 1 : stop, new] = component_scores(
-                        log_prob_tril(y[i + 1 : stop], mean, tril), lr
+                        log_prob_tril(y[i + 1 : stop], mean, factor), lr
                     ).numpy()
             labels[i] = new
             counts[new] += 1
             log_counts[new] = math.log(counts[new])
-    means, covs = slot_parameters(state, opened, k)
+    means, covs, trils = slot_parameters(state, tril, opened, k)
     counts_t = torch.tensor(counts, dtype=DTYPE)
-    return torch.tensor(labels, dtype=torch.long), means, covs, counts_t
+    return torch.tensor(labels, dtype=torch.long), means, covs, trils, counts_t
 
 
 def label_pass_sync_free(
     y: Tensor,
     state: DPMixtureState,
+    start_tril: Tensor,
     log_r: Tensor,
     auxiliary: Auxiliary,
     uniforms: Tensor,
@@ -243,7 +254,8 @@ def label_pass_sync_free(
     means = torch.zeros(capacity, d, dtype=DTYPE, device=device)
     covs = torch.eye(d, dtype=DTYPE, device=device).repeat(capacity, 1, 1)
     means[:k], covs[:k] = state.means, state.covariances
-    tril = torch.linalg.cholesky(covs)
+    tril = torch.eye(d, dtype=DTYPE, device=device).repeat(capacity, 1, 1)
+    tril[:k] = start_tril
     slot_log_r = torch.zeros(capacity, dtype=DTYPE, device=device)
     slot_log_r[:k] = log_r
     counts = torch.zeros(capacity, dtype=DTYPE, device=device)
@@ -269,7 +281,7 @@ def label_pass_sync_free(
                 aux, uniforms, log_aux_prior,
             )  # fmt: skip
     k = int(counts.nonzero().max()) + 1
-    return labels, means[:k], covs[:k], counts[:k]
+    return labels, means[:k], covs[:k], tril[:k], counts[:k]
 
 
 def _sync_free_step(
@@ -314,7 +326,7 @@ def _sync_free_step(
     tril_j = aux.tril[r].index_select(0, j)
     means.index_copy_(0, new, torch.where(opens[:, None], mean_j, means.index_select(0, new)))
     wide = opens[:, None, None]
-    cov_j = symmetric(aux.covs[r].index_select(0, j))
+    cov_j = aux.covs[r].index_select(0, j)
     covs.index_copy_(0, new, torch.where(wide, cov_j, covs.index_select(0, new)))
     tril.index_copy_(0, new, torch.where(wide, tril_j, tril.index_select(0, new)))
     lr_j = aux.log_r[r].index_select(0, j)

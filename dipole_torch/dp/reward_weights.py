@@ -10,9 +10,10 @@ from torch import Tensor
 from dipole_torch.gaussian import log_prob_tril
 
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
+    from dipole_torch.dp.state import DPMixtureState
     from dipole_torch.gaussian_mixture import GaussianMixture
 
-__all__ = ["RewardRegression", "reward_weights"]
+__all__ = ["ComponentRewards", "RewardRegression", "reward_weights"]
 
 
 class RewardRegression:
@@ -36,7 +37,9 @@ class RewardRegression:
         self.tril = torch.linalg.cholesky(covariances[:, :d, :d])  # [K, D, D]
         # gain_k = Σ_θθ⁻¹ Σ_θw: E[w | θ, k] = μ_w + gain_kᵀ (θ − μ_θ).
         cross = covariances[:, :d, d:]
-        self.gain = torch.cholesky_solve(cross, self.tril).squeeze(-1)  # [K, D]
+        # (two triangular solves: cholesky_solve costs more than both at these sizes)
+        half = torch.linalg.solve_triangular(self.tril, cross, upper=False)
+        self.gain = torch.linalg.solve_triangular(self.tril.mT, half, upper=True).squeeze(-1)
         self._bounds: tuple | None = None  # reward_weights' clamp, memoised per weights
 
     def predict(self, theta: Tensor) -> Tensor:
@@ -117,3 +120,23 @@ def _clamp_bounds(
     if cacheable:
         regression._bounds = (key, (low, high))
     return low, high
+
+
+class ComponentRewards:
+    """Eq. 6's log r_c during one sweep, for any component means: ``reward_weights`` of the
+    sweep's starting mixture (components weighted by their sizes), clamped to the range of
+    the data's reward weights.
+
+    Args:
+        state: the sweep's starting state.
+        weights: ``[N]`` the data's reward weights (the last column of y).
+    """
+
+    def __init__(self, state: DPMixtureState, weights: Tensor):
+        counts = torch.bincount(state.labels, minlength=state.num_components)
+        self.regression = RewardRegression(counts.to(weights.dtype), state.means, state.covariances)
+        self.weights = weights
+
+    def __call__(self, means: Tensor) -> Tensor:
+        """``[...]`` log r_c for ``means: [..., D + 1]``."""
+        return reward_weights(self.regression, means, weights=self.weights)
