@@ -4,6 +4,7 @@ multi-optima peers (IPOP-CMA-ES, NMMSO) and random search, on generated landscap
     python benchmarks/bench_multioptima.py                      # the full grid, 2 processes
     python benchmarks/bench_multioptima.py --dims 2 --ks 2 4 --seeds 3 --workers 1 \\
         --json /tmp/multioptima.json                            # a quick look
+    python benchmarks/bench_multioptima.py --methods DIPOLE --keep-others  # DIPOLE's rows anew
 
 **Landscapes** (``make_landscape``, seeded): k peaks of equal height (k even). Centres
 c_i are uniform in [−5, 5]^D, the whole set redrawn until every pair is ≥ 2.0 apart;
@@ -714,6 +715,22 @@ def write_report(path: Path, config: dict, wall: float, summary: dict, cases: li
     print(f"wrote {path}")
 
 
+def kept_cases(path: Path, config: dict, methods: Sequence[str], same: Sequence[str]) -> list:
+    """The cases of ``path``'s report for every method not in ``methods``, for
+    ``--keep-others``: a run of some methods (DIPOLE's, after a change to it) completed by the
+    others' earlier cases rather than by running them again (every method here is seeded from
+    its case: a rerun gives the same results; only their timings are the earlier run's).
+    The report's config must equal ``config`` on the keys ``same`` (the grid)."""
+    report = json.loads(path.read_text())
+    for key in same:
+        if report["config"][key] != config[key]:
+            raise SystemExit(
+                f"--keep-others: {path} has {key}={report['config'][key]}, this run "
+                f"{config[key]}: run every method instead"
+            )
+    return [c for c in report["cases"] if c["method"] not in methods]
+
+
 def _version(package: str) -> str | None:
     try:
         return importlib.metadata.version(package)
@@ -730,6 +747,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "multioptima.json")
+    parser.add_argument(
+        "--keep-others", action="store_true",
+        help="keep the other methods' cases from --json instead of running them",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS + OPT_IN if m in args.methods]
@@ -747,8 +768,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         ),
         key=lambda t: (cost.get(t[3], 4), -t[0], -t[1]),
     )
+    grid = {"dims": args.dims, "ks": args.ks, "seeds": args.seeds, "budgets": budgets}
+    kept = kept_cases(args.json, grid, methods, list(grid)) if args.keep_others else []
     cases, wall = run_tasks(_task, tasks, args.workers, _progress)
+    cases += kept
     order = {m: i for i, m in enumerate(METHODS + OPT_IN)}
+    methods = sorted({c["method"] for c in cases} | set(methods), key=order.__getitem__)
     cases.sort(key=lambda c: (order[c["method"]], c["dim"], c["k"], c["seed"]))
     text, summary = summarize(cases, methods, args.dims, args.ks, budgets)
     print(text)

@@ -4,6 +4,7 @@ trials? DIPOLE against IPOP-CMA-ES, NMMSO and random search, in one run.
     python benchmarks/bench_niching.py                          # 10 functions, 4 seeds, 2 processes
     python benchmarks/bench_niching.py --functions 2 4 7 --seeds 2 --budgets 2000 \\
         --json /tmp/niching.json                                 # a quick look
+    python benchmarks/bench_niching.py --methods DIPOLE --keep-others   # DIPOLE's rows anew
 
 **Functions** (``FUNCTIONS``): F1–F10 of the CEC 2013 competition on niching methods
 (Li, Engelbrecht & Epitropakis 2013, "Benchmark functions for CEC'2013 special session and
@@ -319,6 +320,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "niching.json")
+    parser.add_argument(
+        "--keep-others", action="store_true",
+        help="keep the other methods' cases from --json instead of running them",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS + peers.OPT_IN if m in args.methods]
@@ -328,8 +333,12 @@ def main(argv: Sequence[str] | None = None) -> None:
             parser.error(f"--functions takes numbers in 1..{len(FUNCTIONS)}, got {n}")
     # DIPOLE first (the slowest), so the processes finish together.
     tasks = [(n, s, m, budgets) for m in methods for n in numbers for s in range(args.seeds)]
+    grid = {"functions": numbers, "seeds": args.seeds, "budgets": budgets}
+    kept = peers.kept_cases(args.json, grid, methods, list(grid)) if args.keep_others else []
     cases, wall = peers.run_tasks(_task, tasks, args.workers, _progress)
+    cases += kept
     order = {m: i for i, m in enumerate(METHODS + peers.OPT_IN)}
+    methods = sorted({c["method"] for c in cases} | set(methods), key=order.__getitem__)
     cases.sort(key=lambda c: (order[c["method"]], c["function"], c["seed"]))
     text, summary = summarize(cases, methods, numbers, budgets)
     print(text)
