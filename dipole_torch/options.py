@@ -70,9 +70,9 @@ class DipoleOptions:
         matching: "overlap" (a component continues the policy owning most of its samples; the
             others become new policies) or "replace" (the components replace the policies).
         explore: scouts from N(θ0, Σ_start) per policy sample, in [0, 1].
-        restarts: where a restart's scouts come from (every policy retired): "start"
-            (default) N(θ0, Σ_start); "box" uniform in the box when ``bounds`` are finite on
-            every side, else N(θ0, Σ_start). See mechanisms.scouting.
+        restarts: where a restart's scouts come from (every policy retired): "box" (default)
+            uniform in the box when ``bounds`` are finite on every side, else N(θ0,
+            Σ_start); "start" always N(θ0, Σ_start). See mechanisms.scouting.
         hill_valley: vet new policies and neighbouring ones by probes between them.
         pair_points: probes between two neighbouring policies (1: the midpoint).
         max_policies: active policies at most (None: no limit).
@@ -105,7 +105,7 @@ class DipoleOptions:
     exploration: str = "success"
     matching: str = "overlap"
     explore: float = 0.05
-    restarts: str = "start"
+    restarts: str = "box"
     hill_valley: bool = True
     pair_points: int = 1
     max_policies: int | None = 8

@@ -10,12 +10,12 @@
   per policy sample on average; the clustering puts a scout that lies on another hill in a
   component of its own, a candidate policy. When every policy has retired, the next ask is
   a fresh n0 of them: a restart (an empty ask would end the run).
-* Restarts (``restarts``): from N(θ0, Σ_start) by default (``"start"``). With ``"box"`` and
-  a box finite on every side, a restart's scouts are drawn uniformly in the box, as NMMSO's
-  and HillVallEA's new samples are: the optima a run has not found yet are often where
-  N(θ0, Σ_start) rarely reaches (on Vincent's function, the narrow basins near the box's
-  edge), and the held ones keep their policies. The first batch is always N(θ0, Σ_start)
-  (Algorithm 2).
+* Restarts (``restarts``): with ``"box"`` (the default) and a box finite on every side, a
+  restart's scouts are drawn uniformly in the box, as NMMSO's and HillVallEA's new samples
+  are: the optima a run has not found yet are often where N(θ0, Σ_start) rarely reaches (on
+  Vincent's function, the narrow basins near the box's edge), and the held ones keep their
+  policies. Without such a box, or with ``"start"``, they come from N(θ0, Σ_start). The first
+  batch is always N(θ0, Σ_start) (Algorithm 2).
 """
 
 from __future__ import annotations
