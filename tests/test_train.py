@@ -2,6 +2,7 @@
 resume, multirun, typed configs and --help, config errors."""
 
 import dataclasses
+import itertools
 import json
 import os
 import subprocess
@@ -137,18 +138,25 @@ def test_power_evaluates_exactly_the_trial_budget(tmp_path):
 
 def test_dipole_evaluates_exactly_the_trial_budget(tmp_path):
     """The batch that would cross the budget is cut to its first rows; the checkpoint keeps
-    the run before it: its optimizer, asked again, proposes that whole batch. (This seed's
-    batches end at 78 and 80 trials: a budget of 79 cuts the last one.)"""
-    train("task=multimodal", "algo=dipole", "seed=0", "trials=79", f"hydra.run.dir={tmp_path}")
-    results = json.loads((tmp_path / "results.json").read_text())
-    assert results["trial_budget"] == 79
-    assert results["trials"] == 79 and results["history"]["trials"][-1] == 79
-    assert "the last batch is cut to its first 1 of 2 rows" in (tmp_path / "train.log").read_text()
-    checkpoint = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    the run before it: its optimizer, asked again, proposes that whole batch. (The budget
+    is set to cut a batch of an uninterrupted run of this seed after its first row.)"""
+    straight = tmp_path / "straight"
+    train("task=multimodal", "algo=dipole", "seed=0", "trials=90", f"hydra.run.dir={straight}")
+    ends = json.loads((straight / "results.json").read_text())["history"]["trials"]
+    before, after = next((a, b) for a, b in itertools.pairwise(ends) if b - a >= 2)
+    budget = before + 1
+    cut = tmp_path / "cut"
+    train("task=multimodal", "algo=dipole", "seed=0", f"trials={budget}", f"hydra.run.dir={cut}")
+    results = json.loads((cut / "results.json").read_text())
+    assert results["trial_budget"] == budget
+    assert results["trials"] == budget and results["history"]["trials"][-1] == budget
+    message = f"the last batch is cut to its first 1 of {after - before} rows"
+    assert message in (cut / "train.log").read_text()
+    checkpoint = torch.load(cut / "checkpoint.pt", weights_only=True)
     trials = checkpoint["optimizer"]["trials"]
-    assert trials == 78
+    assert trials == before
     assert checkpoint["optimizer"]["pending"] is None
-    cfg = compose_config("trials=79")
+    cfg = compose_config(f"trials={budget}")
     task = instantiate(cfg.task.env)
     optimizer = instantiate(
         cfg.algo.optimizer,
@@ -159,16 +167,15 @@ def test_dipole_evaluates_exactly_the_trial_budget(tmp_path):
     )
     assert isinstance(optimizer, Dipole)
     optimizer.load_state_dict(checkpoint["optimizer"])
-    assert trials + optimizer.ask().shape[0] > 79
+    assert trials + optimizer.ask().shape[0] > budget
     # A resume with a larger budget makes the draws of an uninterrupted run.
-    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
-    train("task=multimodal", "algo=dipole", "seed=0", "trials=90", f"hydra.run.dir={straight}")
+    resumed = tmp_path / "resumed"
     train(
         "task=multimodal",
         "algo=dipole",
         "seed=0",
         "trials=90",
-        f"resume={tmp_path / 'checkpoint.pt'}",
+        f"resume={cut / 'checkpoint.pt'}",
         f"hydra.run.dir={resumed}",
     )
     a = json.loads((straight / "results.json").read_text())

@@ -402,33 +402,36 @@ def test_policy_figure_is_legible_at_tensorboard_card_size(task):
 
 def test_dipole_finds_several_routes():
     """The default DIPOLE (n0 = 30, 300 trials) on the default task (pytorch-kinematics, the
-    fixed target component) on a fixed seed: at least two final policy means, evaluated
-    without noise, take distinct routes with reward ≥ 0.9. (Measured on seeds 0-3: 2, 2, 3
-    and 3 routes; seed 3's three have returns 0.93-0.95, a margin of one route.)"""
+    fixed target component), seeds 0-3: the final policy means, evaluated without noise, take
+    distinct routes with reward ≥ 0.9, at least 6 in all (measured: 3, 2, 1 and 3; a method
+    that kept one policy would have 4 at most)."""
     from dipole_torch import Dipole
 
     torch.set_num_threads(1)
     task = ViapointTask()
-    opt = Dipole(
-        task.theta0.double(),
-        task.sigma_start.double(),
-        n0=30,
-        reward_range=task.reward_range,
-        generator=torch.Generator().manual_seed(3),
-    )
-    while opt.trials < 300:
-        theta = opt.ask()
-        rewards = task.evaluate(theta.float())
-        assert bool(((rewards >= 0) & (rewards <= 1)).all())
-        opt.tell(theta, rewards)
-    means = opt.policy_means.float()
-    rewards = task.evaluate(means)
-    routes = {
-        tuple(r)
-        for r, v in zip(task.route(means).tolist(), rewards.tolist(), strict=True)
-        if v >= 0.9
-    }
-    assert len(routes) >= 2, (rewards, task.route(means))
+    found = []
+    for seed in range(4):
+        opt = Dipole(
+            task.theta0.double(),
+            task.sigma_start.double(),
+            n0=30,
+            reward_range=task.reward_range,
+            generator=torch.Generator().manual_seed(seed),
+        )
+        while opt.trials < 300:
+            theta = opt.ask()
+            rewards = task.evaluate(theta.float())
+            assert bool(((rewards >= 0) & (rewards <= 1)).all())
+            opt.tell(theta, rewards)
+        means = opt.policy_means.float()
+        rewards = task.evaluate(means)
+        routes = {
+            tuple(r)
+            for r, v in zip(task.route(means).tolist(), rewards.tolist(), strict=True)
+            if v >= 0.9
+        }
+        found.append(len(routes))
+    assert sum(found) >= 6, found
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
