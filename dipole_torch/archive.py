@@ -89,9 +89,11 @@ class SampleArchive:
         self.keep((self.owner < 0) | keep[self.owner.clamp_min(0)])
         self.owner = torch.where(self.owner >= 0, new_index[self.owner.clamp_min(0)], self.owner)
 
-    def state_dict(self) -> dict[str, Tensor]:
-        return {"thetas": self.thetas.clone(), "rewards": self.rewards.clone(),
-                "owner": self.owner.clone()}  # fmt: skip
+    def state_dict(self, copy: bool = True) -> dict[str, Tensor]:
+        """``thetas``, ``rewards`` and ``owner``: copies, or (``copy=False``) the tensors
+        themselves, which the archive replaces and never writes into."""
+        state = {"thetas": self.thetas, "rewards": self.rewards, "owner": self.owner}
+        return {key: value.clone() for key, value in state.items()} if copy else state
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
         """Load ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]``; raises ``ValueError``

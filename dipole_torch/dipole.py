@@ -330,10 +330,12 @@ class Dipole(PolicySearch):
         )
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict:
+    def _state(self, copy: bool) -> dict:
+        # (H and the DP state are kept as they are, copied or not: neither is ever changed,
+        # a clustering makes new ones.)
         return {
-            **super().state_dict(),
-            **self.vetting.state_dict(),
+            **super()._state(copy),
+            **self.vetting.state_dict(copy),
             **self.retirement.state_dict(),
             "initial_prior": None if self.sampler is None else self.sampler.prior.state_dict(),
             "dp_state": None if self.dp_state is None else self.dp_state.state_dict(),

@@ -131,8 +131,13 @@ class PolicySet:
         "ids": "policy_ids",
     }
 
-    def state_dict(self) -> dict[str, Tensor | int]:
-        state = {self.KEYS.get(name, name): value.clone() for name, value in self._tensors.items()}
+    def state_dict(self, copy: bool = True) -> dict[str, Tensor | int]:
+        """Every tensor under its state key, and ``next_policy_id``: copies, or
+        (``copy=False``) the tensors themselves (see ``PolicySearch.tell``'s snapshot)."""
+        state = {
+            self.KEYS.get(name, name): value.clone() if copy else value
+            for name, value in self._tensors.items()
+        }
         return state | {"next_policy_id": self.next_id}
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:

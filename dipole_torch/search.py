@@ -336,7 +336,7 @@ class PolicySearch:
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
         self.reward_scale.validate(rewards, first=not self.started)  # before any change
         theta = into_box(self.box, theta.detach().to(device=self.device, dtype=DTYPE))
-        snapshot = self.state_dict()
+        snapshot = self._snapshot()
         try:
             self._tell(theta, rewards)
             if self.box is not None:
@@ -415,7 +415,7 @@ class PolicySearch:
         returns = check_rewards(returns, self.num_policies, "stored policy", "returns")
         returns = returns.to(self.device)
         self.reward_scale.validate(returns, name="returns")
-        snapshot = self.state_dict()
+        snapshot = self._snapshot()
         try:
             self._reevaluate(returns.to(DTYPE))
         except BaseException:
@@ -454,18 +454,35 @@ class PolicySearch:
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        """Everything needed to continue the run exactly, generator state included."""
+        """Everything needed to continue the run exactly, generator state included (copies:
+        the run goes on without changing them)."""
+        return self._state(copy=True)
+
+    def _snapshot(self) -> dict:
+        """What ``_load_state_dict`` needs to undo a call that raised: ``state_dict``
+        without its copies, the optimizer's tensors themselves. The snapshot stays as it was
+        because every step of a run *replaces* a tensor it changes (``policy_set.means =
+        …``) and never writes into one; a step that must write into a tensor writes into
+        its own copy (``Retirement.restart_straddlers``)."""
+        return self._state(copy=False)
+
+    def _state(self, copy: bool) -> dict:
+        """The entries of ``state_dict``: the tensors copied, or (``copy=False``) not."""
+
+        def kept(tensor: Tensor | None) -> Tensor | None:
+            return tensor.clone() if copy and tensor is not None else tensor
+
         return {
-            **self.archive.state_dict(),
-            **self.policy_set.state_dict(),
-            "last_rewards": self.last_rewards.clone(),
+            **self.archive.state_dict(copy),
+            **self.policy_set.state_dict(copy),
+            "last_rewards": kept(self.last_rewards),
             "trials": self.trials,
             "iteration": self.iteration,
             "policy_samples": self.policy_samples,
-            "best_theta": self._best_theta.clone(),
+            "best_theta": kept(self._best_theta),
             "best_reward": self._best_reward,
-            "pending": None if self._pending is None else self._pending.clone(),
-            "pending_owner": None if self._pending_owner is None else self._pending_owner.clone(),
+            "pending": kept(self._pending),
+            "pending_owner": kept(self._pending_owner),
             "generator": self.generator.get_state(),
             "kind": type(self).__name__,
         }
@@ -480,7 +497,7 @@ class PolicySearch:
             raise ValueError(
                 f"state_dict is from a {state.get('kind')}, not a {type(self).__name__}"
             )
-        snapshot = self.state_dict()
+        snapshot = self._snapshot()
         try:
             self._load_state_dict(state)
         except BaseException:

@@ -52,7 +52,7 @@ class NoVetting:
     def forget(self) -> None:
         pass
 
-    def state_dict(self) -> dict:
+    def state_dict(self, copy: bool = True) -> dict:
         return {}
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
@@ -292,8 +292,13 @@ class HillValley(NoVetting):
         return torch.cdist(points / scale, others / scale)
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict[str, Tensor]:
-        return {name: getattr(self, name).clone() for name in self.TENSORS}
+    def state_dict(self, copy: bool = True) -> dict[str, Tensor]:
+        """The queues: copies, or (``copy=False``) the tensors themselves, which the
+        queues replace and never write into."""
+        return {
+            name: getattr(self, name).clone() if copy else getattr(self, name)
+            for name in self.TENSORS
+        }
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
         for name in self.TENSORS:

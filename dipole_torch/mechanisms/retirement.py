@@ -335,6 +335,8 @@ class Retirement:
         straddling = policies.active & in_valley & distance.isfinite() & (distance > limit)
         if not bool(straddling.any()):
             return
+        # Written row by row into copies: a tell's snapshot holds the tensors themselves.
+        policies.means, policies.covariances = policies.means.clone(), policies.covariances.clone()
         for j in straddling.nonzero().squeeze(-1).tolist():
             own = (archive.owner == j).nonzero().squeeze(-1)
             centre = best[j]
