@@ -1,0 +1,50 @@
+"""A memo of values computed from tensors, kept while those tensors stay unchanged.
+
+An iteration asks for the same per-policy quantities several times (each policy's best
+return, the factors of its exploration covariance) from tensors that did not change in
+between. The object that owns the tensors keeps a ``Memo``: a value is recomputed only
+when one of its source tensors was replaced (identity) or written into (its version
+counter), or when the value itself was written into, so a hit returns exactly what a fresh
+computation would.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Hashable
+
+from torch import Tensor
+
+__all__ = ["Memo"]
+
+
+class Memo:
+    """Values keyed by name, each valid while its source tensors are the same unmodified
+    objects. Inference tensors have no version counter: their values are not memoised."""
+
+    def __init__(self):
+        # key -> (sources, their versions, value, its version)
+        self._entries: dict[Hashable, tuple[tuple[Tensor, ...], tuple[int, ...], Tensor, int]] = {}
+
+    def get(
+        self, key: Hashable, sources: tuple[Tensor, ...], compute: Callable[[], Tensor]
+    ) -> Tensor:
+        """``compute()``, or its memoised value while ``sources`` are unchanged. Not to be
+        written into (a write only costs a recomputation)."""
+        try:
+            versions = tuple(source._version for source in sources)
+        except RuntimeError:  # an inference tensor
+            return compute()
+        hit = self._entries.get(key)
+        if (
+            hit is not None
+            and hit[1] == versions
+            and all(old is new for old, new in zip(hit[0], sources, strict=True))
+            and hit[2]._version == hit[3]
+        ):
+            return hit[2]
+        value = compute()
+        try:
+            self._entries[key] = (sources, versions, value, value._version)
+        except RuntimeError:  # computed under inference mode
+            self._entries.pop(key, None)
+        return value
