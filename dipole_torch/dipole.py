@@ -7,13 +7,14 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from dipole_torch.archive import PROBE
 from dipole_torch.dp.conditionals import posterior_point_estimate
 from dipole_torch.dp.sampler import DPSampler
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.inputs import Bounds, SigmaStart, Theta0
 from dipole_torch.mechanisms.exploration import make_exploration
-from dipole_torch.mechanisms.hill_valley import PROBE, make_vetting
+from dipole_torch.mechanisms.hill_valley import make_vetting
 from dipole_torch.mechanisms.matching import OverlapMatching, ReplaceMatching, adopt_components
 from dipole_torch.mechanisms.retirement import Retirement
 from dipole_torch.mechanisms.scouting import Scouting

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import torch
@@ -51,12 +51,48 @@ class TellBatch:
     """What one ``tell`` reports, as the optimizer's mechanisms see it (float64, on the
     optimizer's device): ``theta [B, D]``, ``rewards [B]``, ``owner [B]`` (see
     ``dipole_torch.archive``: a policy, a scout, a probe) and whether the ask was ``cut``
-    to its first B rows."""
+    to its first B rows.
+
+    An ask lists its rows in groups (``_propose``): the policy samples, one per sampled
+    policy; then the scouts (``NO_POLICY``); then the probes (``PROBE``). The mechanisms
+    take a group as a slice (``rewards[:batch.policy_rows]``), not through a boolean mask
+    (a gather, several times the cost); ``policies`` lists the sampled policies on the
+    host. Built from ``owner`` (one ``tolist``); rows out of that order are refused.
+    """
 
     theta: Tensor
     rewards: Tensor
     owner: Tensor
     cut: bool
+    policies: tuple[int, ...] = field(init=False)  # owner[:policy_rows]
+    sample_rows: int = field(init=False)  # the rows before the probes
+
+    def __post_init__(self) -> None:
+        owners = self.owner.tolist()
+        policy_rows = next((i for i, o in enumerate(owners) if o < 0), len(owners))
+        sample_rows = next(
+            (i for i in range(policy_rows, len(owners)) if owners[i] == PROBE), len(owners)
+        )
+        if any(o >= 0 for o in owners[policy_rows:]) or any(
+            o != PROBE for o in owners[sample_rows:]
+        ):
+            raise ValueError(
+                f"a told batch lists its policy samples, then scouts, then probes; got owners "
+                f"{owners}"
+            )
+        object.__setattr__(self, "policies", tuple(owners[:policy_rows]))
+        object.__setattr__(self, "sample_rows", sample_rows)
+
+    @property
+    def policy_rows(self) -> int:
+        """The batch's first rows that are policy samples."""
+        return len(self.policies)
+
+    def every_policy(self, num_policies: int) -> bool:
+        """Whether the policy samples are one of each of the ``num_policies`` policies, in
+        order: rows ``[:num_policies]`` are then per-policy tensors as they stand (no gather
+        or scatter by ``owner``)."""
+        return self.policies == tuple(range(num_policies))
 
 
 class PolicySearch:
@@ -353,23 +389,27 @@ class PolicySearch:
         batch = TellBatch(theta, rewards, owner, cut=owner.shape[0] < self._pending_owner.shape[0])
         self._pending = self._pending_owner = None
         self._observe(batch)
-        policy_rows = owner >= 0
-        self.policy_samples += int(policy_rows.sum()) if not first else 0
-        sample = owner != PROBE  # probes are evaluations, not samples
-        self.archive.append(theta[sample], rewards[sample], owner[sample])
+        policy_rows = batch.policy_rows
+        self.policy_samples += policy_rows if not first else 0
+        samples = batch.sample_rows  # probes are evaluations, not samples
+        self.archive.append(theta[:samples], rewards[:samples], owner[:samples])
         self.trials += theta.shape[0]
+        k = self.num_policies
         if first:
             self.last_rewards = rewards
+        elif batch.every_policy(k):
+            self.last_rewards = rewards[:policy_rows].clone()
         else:
             # Each policy's latest return: the sampled ones' new returns; a policy that drew
             # no sample keeps the mean return of its kept samples.
-            sampled = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
-            sampled[owner[policy_rows]] = True
-            held = self.archive.mean_rewards(self.num_policies)[~sampled]
-            self.last_rewards = torch.cat((rewards[policy_rows], held))
-        best = int(rewards.argmax())
-        if float(rewards[best]) > self._best_reward:
-            self._best_reward = float(rewards[best])
+            sampled = torch.zeros(k, dtype=torch.bool, device=self.device)
+            sampled[owner[:policy_rows]] = True
+            held = self.archive.mean_rewards(k)[~sampled]
+            self.last_rewards = torch.cat((rewards[:policy_rows], held))
+        values = rewards.tolist()
+        best = max(range(len(values)), key=values.__getitem__)  # the first best, as argmax
+        if values[best] > self._best_reward:
+            self._best_reward = values[best]
             self._best_theta = theta[best].clone()
         if first:
             self._after_initial_batch()

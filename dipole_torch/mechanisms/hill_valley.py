@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from dipole_torch.archive import PROBE
 from dipole_torch.gaussian import DTYPE
 
 if TYPE_CHECKING:
@@ -123,7 +122,8 @@ class HillValley(NoVetting):
         """Keep the probes' returns; a cut ask left tests unjudgeable: forget them."""
         if batch.cut:
             self.forget()
-        self.probe_rewards = batch.rewards[batch.owner == PROBE]
+        # The probes come last. (A copy: the told returns may be the caller's tensor.)
+        self.probe_rewards = batch.rewards[batch.sample_rows :].clone()
 
     def forget(self) -> None:
         """Empty the queues of tests (candidates and pairs) and their probes (a cut ask, or

@@ -159,14 +159,15 @@ class Waking(NoWaking):
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """The returns' range; the trials of restarts and of woken policies."""
-        self.low = min(self.low, float(batch.rewards.min()))
-        self.high = max(self.high, float(batch.rewards.max()))
+        returns = batch.rewards.tolist()
+        self.low = min(self.low, min(returns))
+        self.high = max(self.high, max(returns))
         if not search.started or self.converged_at < 0:
             return
         if not bool(search.active.any()):
-            self.barren_restart_trials += int(batch.rewards.shape[0])
+            self.barren_restart_trials += len(returns)
             return
-        owner = batch.owner[batch.owner >= 0]
+        owner = batch.owner[: batch.policy_rows]
         woken = int((search.policy_set.refinements[owner] > 0).sum())
         self.refine_trials += woken
         self.barren_refine_trials += woken
@@ -272,11 +273,14 @@ class Retirement:
         self.waking.observe(search, batch)
         if not (self.restarts and search.started):
             return
-        rows = batch.owner >= 0
-        policy = batch.owner[rows]
-        worst = search.archive.per_policy("amin", search.num_policies)
-        self._in_valley = torch.zeros(search.num_policies, dtype=torch.bool, device=search.device)
-        self._in_valley[policy] = batch.rewards[rows] < worst[policy]
+        k, n = search.num_policies, batch.policy_rows
+        worst = search.archive.per_policy("amin", k)
+        if batch.every_policy(k):  # one sample of each policy, in order
+            self._in_valley = batch.rewards[:n] < worst
+            return
+        policy = batch.owner[:n]
+        self._in_valley = torch.zeros(k, dtype=torch.bool, device=search.device)
+        self._in_valley[policy] = batch.rewards[:n] < worst[policy]
 
     def forget(self) -> None:
         """The world changed: nothing judged on the old world's returns is kept."""
