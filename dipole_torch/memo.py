@@ -11,6 +11,7 @@ computation would.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable
+from typing import Any
 
 from torch import Tensor
 
@@ -19,15 +20,14 @@ __all__ = ["Memo"]
 
 class Memo:
     """Values keyed by name, each valid while its source tensors are the same unmodified
-    objects. Inference tensors have no version counter: their values are not memoised."""
+    objects. A value is a tensor, a tuple of tensors, or an immutable host value (a tuple of
+    numbers). Inference tensors have no version counter: their values are not memoised."""
 
     def __init__(self):
-        # key -> (sources, their versions, value, its version)
-        self._entries: dict[Hashable, tuple[tuple[Tensor, ...], tuple[int, ...], Tensor, int]] = {}
+        # key -> (sources, their versions, value, the versions of its tensors)
+        self._entries: dict[Hashable, tuple[tuple[Tensor, ...], tuple[int, ...], Any, tuple]] = {}
 
-    def get(
-        self, key: Hashable, sources: tuple[Tensor, ...], compute: Callable[[], Tensor]
-    ) -> Tensor:
+    def get(self, key: Hashable, sources: tuple[Tensor, ...], compute: Callable[[], Any]) -> Any:
         """``compute()``, or its memoised value while ``sources`` are unchanged. Not to be
         written into (a write only costs a recomputation)."""
         try:
@@ -39,12 +39,21 @@ class Memo:
             hit is not None
             and hit[1] == versions
             and all(old is new for old, new in zip(hit[0], sources, strict=True))
-            and hit[2]._version == hit[3]
+            and _versions(hit[2]) == hit[3]
         ):
             return hit[2]
         value = compute()
         try:
-            self._entries[key] = (sources, versions, value, value._version)
+            self._entries[key] = (sources, versions, value, _versions(value))
         except RuntimeError:  # computed under inference mode
             self._entries.pop(key, None)
         return value
+
+
+def _versions(value: Any) -> tuple[int, ...]:
+    """The version counters of the tensors in ``value`` (a tensor or a tuple)."""
+    if isinstance(value, Tensor):
+        return (value._version,)
+    if isinstance(value, tuple):
+        return tuple(item._version for item in value if isinstance(item, Tensor))
+    return ()

@@ -152,6 +152,7 @@ class PolicySearch:
         self.device = theta0.device
         self.theta0 = theta0.to(DTYPE)
         self.sigma_start = sigma
+        self._start_variances = sigma.diagonal()  # [D] (a view: it follows Σ_start)
         self.box = make_box(bounds, self.theta0)
         self.M = int(M)
         self.n0 = int(n0)
@@ -229,7 +230,7 @@ class PolicySearch:
         """``[K]`` each policy's largest exploration std relative to Σ_start's, per axis
         (or that of ``covariances [..., D, D]``)."""
         covs = self.policy_covariances if covariances is None else covariances
-        ratio = covs.diagonal(dim1=-2, dim2=-1) / self.sigma_start.diagonal()
+        ratio = covs.diagonal(dim1=-2, dim2=-1) / self._start_variances
         return ratio.amax(-1).sqrt()
 
     @property

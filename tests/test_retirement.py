@@ -9,7 +9,7 @@ F64 = torch.float64
 
 def restart(opt, in_valley):
     """The straddler restart, with ``in_valley [K]`` as the told batch would have set it."""
-    opt.retirement._in_valley = in_valley
+    opt.retirement._in_valley = tuple(in_valley.tolist())
     opt.retirement.restart_straddlers(opt)
 
 
