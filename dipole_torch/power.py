@@ -35,7 +35,9 @@ __all__ = [
 ]
 
 
-def power_update(mean: Tensor, samples: Tensor, weights: Tensor) -> Tensor:
+def power_update(
+    mean: Tensor, samples: Tensor, weights: Tensor, *, validate: bool = True
+) -> Tensor:
     """Eq. 7 for K policies at once.
 
     θ_k ← θ_k + Σ_m w_km (θ_km − θ_k) / Σ_m w_km.
@@ -45,16 +47,18 @@ def power_update(mean: Tensor, samples: Tensor, weights: Tensor) -> Tensor:
         samples: ``[K, M, D]`` each policy's importance set (its best M samples).
         weights: ``[K, M]`` non-negative reward weights; 0 marks padding. A policy whose
             weights are all 0 keeps its mean.
+        validate: check the shapes and the weights' signs (``False``: weights built
+            non-negative, as ``PolicyImportance.slot_weights`` makes them).
 
     Returns:
         ``[K, D]`` updated parameters θ^(n).
     """
-    if samples.shape[:-1] != weights.shape or samples.shape[0] != mean.shape[0]:
+    if validate and (samples.shape[:-1] != weights.shape or samples.shape[0] != mean.shape[0]):
         raise ValueError(
             f"power_update: expected mean [K, D], samples [K, M, D], weights [K, M]; got "
             f"{list(mean.shape)}, {list(samples.shape)}, {list(weights.shape)}"
         )
-    if (weights < 0).any():
+    if validate and (weights < 0).any():
         raise ValueError("power_update: weights must be non-negative")
     total = weights.sum(-1, keepdim=True)  # [K, 1]
     step = (weights.unsqueeze(-1) * (samples - mean.unsqueeze(-2))).sum(-2)
@@ -197,8 +201,12 @@ class PolicyImportance:
             archive.owner, archive.rewards, search.num_policies, search.M
         )
         weights = self.slot_weights(search, index, valid)
-        means = power_update(policies.means, archive.thetas[index], weights)
-        policies.means = torch.where(policies.active[:, None], means, policies.means)
+        means = power_update(
+            policies.means, archive.thetas[index], weights, validate=not self.unit_weights(search)
+        )
+        if not all(policies.active_flags()):  # (else every policy takes its step)
+            means = torch.where(policies.active[:, None], means, policies.means)
+        policies.means = means
         archive.keep(kept)
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
@@ -217,6 +225,11 @@ class PolicyImportance:
         weights = torch.where(spread > 0, mapped, torch.ones_like(mapped))
         return weights * valid
 
+    def unit_weights(self, search: PolicySearch) -> bool:
+        """Whether ``slot_weights`` lie in [0, 1] by construction (``power_update`` then
+        need not check them)."""
+        return True
+
 
 class GlobalImportance(PolicyImportance):
     """The best K·M samples overall are kept; eq. 7 weighs each policy's best M among them by
@@ -232,6 +245,11 @@ class GlobalImportance(PolicyImportance):
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         rewards = search.archive.rewards
         return search.reward_scale.weights(rewards, reference=rewards)[index] * valid
+
+    def unit_weights(self, search: PolicySearch) -> bool:
+        """The reward scale's weights lie in [floor, 1], but for positive returns used as
+        they are (a loaded state may hold any)."""
+        return not search.reward_scale.positive
 
 
 def make_importance(kind: str) -> PolicyImportance:

@@ -371,7 +371,7 @@ class PolicySearch:
         check_in_box(self.box, theta)
         check_asked(self._pending, theta)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
-        self.reward_scale.validate(rewards, first=not self.started)  # before any change
+        self.reward_scale.check_range(rewards, first=not self.started)  # before any change
         theta = into_box(self.box, theta.detach().to(device=self.device, dtype=DTYPE))
         snapshot = self._snapshot()
         try:
@@ -455,7 +455,7 @@ class PolicySearch:
             raise RuntimeError("reevaluate() needs a started run: tell() the first batch first")
         returns = check_rewards(returns, self.num_policies, "stored policy", "returns")
         returns = returns.to(self.device)
-        self.reward_scale.validate(returns, name="returns")
+        self.reward_scale.check_range(returns, name="returns")
         snapshot = self._snapshot()
         try:
             self._reevaluate(returns.to(DTYPE))
