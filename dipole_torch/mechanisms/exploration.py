@@ -138,14 +138,14 @@ class SuccessRule:
         succeeded = batch.rewards[:n] > rows(search.policy_best_rewards)
         constants = self.parameters
         c_c, c_cov = constants.path_rate, constants.covariance_rate
-        step = batch.theta[:n] - rows(policies.means)
-        paths = rows(policies.paths)
-        paths = torch.where(
-            succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
-        )
-        covs = rows(policies.covariances)
-        rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
-        covs = torch.where(succeeded[:, None, None], rank_one, covs)
+        paths, covs = rows(policies.paths), rows(policies.covariances)
+        if True in succeeded.tolist():  # (most samples fail: paths and Σ then stand)
+            step = batch.theta[:n] - rows(policies.means)
+            paths = torch.where(
+                succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
+            )
+            rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
+            covs = torch.where(succeeded[:, None, None], rank_one, covs)
         c = constants.smoothing
         success = (1 - c) * rows(policies.success) + c * succeeded.to(DTYPE)
         p_t = constants.target_success
