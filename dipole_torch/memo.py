@@ -11,6 +11,7 @@ computation would.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable
+from operator import is_
 from typing import Any
 
 from torch import Tensor
@@ -24,36 +25,33 @@ class Memo:
     numbers). Inference tensors have no version counter: their values are not memoised."""
 
     def __init__(self):
-        # key -> (sources, their versions, value, the versions of its tensors)
-        self._entries: dict[Hashable, tuple[tuple[Tensor, ...], tuple[int, ...], Any, tuple]] = {}
+        # key -> (sources, the tensors watched: sources and the value's, their versions, value)
+        self._entries: dict[Hashable, tuple[tuple[Tensor, ...], tuple, list[int], Any]] = {}
 
     def get(self, key: Hashable, sources: tuple[Tensor, ...], compute: Callable[[], Any]) -> Any:
         """``compute()``, or its memoised value while ``sources`` are unchanged. Not to be
         written into (a write only costs a recomputation)."""
-        try:
-            versions = tuple(source._version for source in sources)
-        except RuntimeError:  # an inference tensor
-            return compute()
         hit = self._entries.get(key)
-        if (
-            hit is not None
-            and hit[1] == versions
-            and all(old is new for old, new in zip(hit[0], sources, strict=True))
-            and _versions(hit[2]) == hit[3]
-        ):
-            return hit[2]
+        if hit is not None:
+            old, watched, versions, value = hit
+            # (A hit costs a few attribute reads: it is asked for several times an iteration.)
+            if all(map(is_, old, sources)) and [t._version for t in watched] == versions:
+                return value
         value = compute()
+        watched = (*sources, *_tensors(value))
         try:
-            self._entries[key] = (sources, versions, value, _versions(value))
-        except RuntimeError:  # computed under inference mode
+            versions = [t._version for t in watched]
+        except RuntimeError:  # an inference tensor
             self._entries.pop(key, None)
+            return value
+        self._entries[key] = (sources, watched, versions, value)
         return value
 
 
-def _versions(value: Any) -> tuple[int, ...]:
-    """The version counters of the tensors in ``value`` (a tensor or a tuple)."""
+def _tensors(value: Any) -> tuple[Tensor, ...]:
+    """The tensors of ``value`` (a tensor, or a tuple) whose writes the memo watches."""
     if isinstance(value, Tensor):
-        return (value._version,)
+        return (value,)
     if isinstance(value, tuple):
-        return tuple(item._version for item in value if isinstance(item, Tensor))
+        return tuple(item for item in value if isinstance(item, Tensor))
     return ()
