@@ -168,7 +168,9 @@ class Dipole(PolicySearch):
 
     # ------------------------------------------------------------------ ask
     def _batch_size(self) -> int:
-        sampled = self.scouting.sampled_policies(self).numel() if bool(self.active.any()) else 0
+        sampled = (
+            self.scouting.sampled_policies(self).numel() if self.policy_set.any_active() else 0
+        )
         probes = self.vetting.probes()
         return (
             sampled
@@ -181,7 +183,7 @@ class Dipole(PolicySearch):
 
     def _propose(self) -> tuple[Tensor, Tensor]:
         """Policy samples, then scouts, then hill-valley probes."""
-        if bool(self.active.any()):
+        if self.policy_set.any_active():
             theta, owner = super()._propose()
         else:
             theta, owner = self.archive.thetas[:0], self.archive.owner[:0]
@@ -209,7 +211,7 @@ class Dipole(PolicySearch):
         self.importance.power_step(self)  # eq. 7 on each policy's importance set
         self.retirement.restart_straddlers(self)  # while policies are numbered as told
         self.vetting.judge(self)  # the probes told in this batch
-        restart = not bool(self.active.any())  # every policy retired: cluster the scouts
+        restart = not self.policy_set.any_active()  # every policy retired: cluster the scouts
         clustered = restart or self.iteration % self.cluster_every == 0
         if clustered:
             self._cluster()

@@ -93,6 +93,10 @@ class PolicySet:
         """Which policies are active, on the host (the mechanisms branch on it)."""
         return self._memo.get("active", (self.active,), lambda: tuple(self.active.tolist()))
 
+    def any_active(self) -> bool:
+        """Whether some policy is active (on the host, from ``active_flags``)."""
+        return True in self.active_flags()
+
     def exploration_factors(self) -> tuple[Tensor, Tensor]:
         """``(L [K, D, D], ok [K])``: the Cholesky factors of the exploration covariances,
         and whether each exists in float64 (where not, L is the identity). Not to be

@@ -393,7 +393,10 @@ class PolicySearch:
         policy_rows = batch.policy_rows
         self.policy_samples += policy_rows if not first else 0
         samples = batch.sample_rows  # probes are evaluations, not samples
-        self.archive.append(theta[:samples], rewards[:samples], owner[:samples])
+        if samples == theta.shape[0]:
+            self.archive.append(theta, rewards, owner)
+        else:
+            self.archive.append(theta[:samples], rewards[:samples], owner[:samples])
         self.trials += theta.shape[0]
         k = self.num_policies
         if first:

@@ -169,7 +169,7 @@ class Waking(NoWaking):
         self.high = max(self.high, max(returns))
         if not search.started or self.converged_at < 0:
             return
-        if not bool(search.active.any()):
+        if not search.policy_set.any_active():
             self.barren_restart_trials += len(returns)
             return
         owner = batch.owner[: batch.policy_rows]
@@ -194,7 +194,7 @@ class Waking(NoWaking):
 
     def wake(self, search: PolicySearch) -> None:
         """With no policy active: wake retired policies as the class docstring says."""
-        if bool(search.active.any()) or search.num_policies == 0:
+        if search.policy_set.any_active() or search.num_policies == 0:
             return
         policies = search.policy_set
         if self.converged_at < 0:
