@@ -27,6 +27,7 @@ from dipole_torch.inputs import (
     check_in_box,
     into_box,
     make_box,
+    told_as_asked,
 )
 from dipole_torch.policy_set import PolicySet
 from dipole_torch.result import SearchResult
@@ -171,6 +172,7 @@ class PolicySearch:
         self._best_reward = -math.inf
         self._pending: Tensor | None = None
         self._pending_owner: Tensor | None = None
+        self._pending_boxed = False  # the pending rows were projected by this ask (not loaded)
 
     # ------------------------------------------------------------------ views
     @property
@@ -321,6 +323,7 @@ class PolicySearch:
             theta, owner = self._propose()
         theta = into_box(self.box, theta)
         self._pending, self._pending_owner = theta, owner
+        self._pending_boxed = True
         if max_rows is not None:
             theta = theta[: int(max_rows)]
         return theta.to(self.dtype)
@@ -368,8 +371,10 @@ class PolicySearch:
                 f"ask, or its first n (1 <= n <= {asked})"
             )
         check_finite(theta, "theta")
-        check_in_box(self.box, theta)
-        check_asked(self._pending, theta)
+        # Rows told as this optimizer asked them lie in its box: one comparison checks both.
+        if not (self._pending_boxed and told_as_asked(self._pending, theta)):
+            check_in_box(self.box, theta)
+            check_asked(self._pending, theta)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
         self.reward_scale.check_range(rewards, first=not self.started)  # before any change
         theta = into_box(self.box, theta.detach().to(device=self.device, dtype=DTYPE))
@@ -568,6 +573,7 @@ class PolicySearch:
             pending, owner = state["pending"], state["pending_owner"]
             self._pending = None if pending is None else pending.to(self.device)
             self._pending_owner = None if owner is None else owner.to(self.device)
+            self._pending_boxed = False  # (rows from elsewhere: checked against the box)
             self.generator.set_state(state["generator"])
         except KeyError as missing:
             raise ValueError(
