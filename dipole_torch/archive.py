@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
+from dipole_torch.memo import Memo
 
 __all__ = ["NO_POLICY", "PROBE", "SampleArchive"]
 
@@ -31,6 +32,7 @@ class SampleArchive:
         self.thetas = torch.empty(0, dim, dtype=DTYPE, device=device)
         self.rewards = torch.empty(0, dtype=DTYPE, device=device)
         self.owner = torch.empty(0, dtype=torch.long, device=device)
+        self._memo = Memo()
 
     def __len__(self) -> int:
         return int(self.rewards.shape[0])
@@ -53,34 +55,55 @@ class SampleArchive:
         """Forget every sample; keep these instead."""
         self.thetas, self.rewards, self.owner = thetas, rewards, owner
 
+    # The per-policy reductions below are memoised (``Memo``): an iteration asks for each
+    # policy's best return in several mechanisms, mostly while the archive stands still.
+    # They scatter every sample into K + 1 slots, slot 0 taking the samples of no policy, so
+    # that no boolean mask (a costly gather) is needed to leave those out.
+    def _slots(self) -> Tensor:
+        """``[N]`` each sample's slot: its owner + 1 (0: no policy)."""
+        return self._memo.get("slots", (self.owner,), lambda: self.owner.clamp_min(-1) + 1)
+
     def per_policy(self, reduce: str, num_policies: int) -> Tensor:
-        """``[K]`` the ``"amax"`` or ``"amin"`` of each policy's kept returns (∓inf: none)."""
-        empty = -math.inf if reduce == "amax" else math.inf
-        start = torch.full((num_policies,), empty, dtype=DTYPE, device=self.rewards.device)
-        owned = self.owner >= 0
-        return start.scatter_reduce(0, self.owner[owned], self.rewards[owned], reduce)
+        """``[K]`` the ``"amax"`` or ``"amin"`` of each policy's kept returns (∓inf: none).
+        Memoised: not to be written into."""
+
+        def compute() -> Tensor:
+            empty = -math.inf if reduce == "amax" else math.inf
+            start = torch.full((num_policies + 1,), empty, dtype=DTYPE, device=self.rewards.device)
+            return start.scatter_reduce(0, self._slots(), self.rewards, reduce)[1:]
+
+        return self._memo.get((reduce, num_policies), (self.owner, self.rewards), compute)
 
     def counts(self, num_policies: int) -> Tensor:
-        """``[K]`` the number of kept samples of each policy."""
-        return torch.bincount(self.owner[self.owner >= 0], minlength=num_policies)
+        """``[K]`` the number of kept samples of each policy. Memoised: not to be written
+        into."""
+        return self._memo.get(
+            ("counts", num_policies),
+            (self.owner,),
+            lambda: torch.bincount(self._slots(), minlength=num_policies + 1)[1:],
+        )
 
     def mean_rewards(self, num_policies: int) -> Tensor:
         """``[K]`` each policy's mean kept return (0 for a policy with none)."""
-        owned = self.owner >= 0
-        total = torch.zeros(num_policies, dtype=DTYPE, device=self.rewards.device).index_add_(
-            0, self.owner[owned], self.rewards[owned]
-        )
-        count = torch.bincount(self.owner[owned], minlength=num_policies).clamp_min(1)
-        return total / count
+        slots = self._slots()
+        total = torch.zeros(num_policies + 1, dtype=DTYPE, device=self.rewards.device)
+        # (Each slot's returns are summed in the archive's order, as over the owned ones.)
+        total = total.index_add_(0, slots, self.rewards)[1:]
+        return total / self.counts(num_policies).clamp_min(1)
 
     def best_samples(self, means: Tensor) -> Tensor:
         """``[K, D]`` each policy's best kept sample (its row of ``means [K, D]`` where it
-        has none)."""
-        best = means.clone()
-        owned = (self.owner >= 0).nonzero().squeeze(-1)
-        order = owned[torch.argsort(self.rewards[owned], stable=True)]
-        best[self.owner[order]] = self.thetas[order]  # ascending: the best is written last
-        return best
+        has none). Memoised: not to be written into."""
+
+        def compute() -> Tensor:
+            # One more row, last, takes the samples of no policy (owner -1).
+            best = torch.cat((means, means.new_zeros(1, means.shape[1])))
+            order = torch.argsort(self.rewards, stable=True)
+            best[self.owner[order]] = self.thetas[order]  # ascending: the best is written last
+            return best[:-1]
+
+        sources = (self.owner, self.rewards, self.thetas, means)
+        return self._memo.get("best_samples", sources, compute)
 
     def drop_policies(self, keep: Tensor) -> None:
         """Drop the samples of the policies not in ``keep [K]`` (bool) and renumber the
@@ -89,9 +112,11 @@ class SampleArchive:
         self.keep((self.owner < 0) | keep[self.owner.clamp_min(0)])
         self.owner = torch.where(self.owner >= 0, new_index[self.owner.clamp_min(0)], self.owner)
 
-    def state_dict(self) -> dict[str, Tensor]:
-        return {"thetas": self.thetas.clone(), "rewards": self.rewards.clone(),
-                "owner": self.owner.clone()}  # fmt: skip
+    def state_dict(self, copy: bool = True) -> dict[str, Tensor]:
+        """``thetas``, ``rewards`` and ``owner``: copies, or (``copy=False``) the tensors
+        themselves, which the archive replaces and never writes into."""
+        state = {"thetas": self.thetas, "rewards": self.rewards, "owner": self.owner}
+        return {key: value.clone() for key, value in state.items()} if copy else state
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
         """Load ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]``; raises ``ValueError``

@@ -7,13 +7,14 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from dipole_torch.archive import PROBE
 from dipole_torch.dp.conditionals import posterior_point_estimate
 from dipole_torch.dp.sampler import DPSampler
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.inputs import Bounds, SigmaStart, Theta0
 from dipole_torch.mechanisms.exploration import make_exploration
-from dipole_torch.mechanisms.hill_valley import PROBE, make_vetting
+from dipole_torch.mechanisms.hill_valley import make_vetting
 from dipole_torch.mechanisms.matching import OverlapMatching, ReplaceMatching, adopt_components
 from dipole_torch.mechanisms.retirement import Retirement
 from dipole_torch.mechanisms.scouting import Scouting
@@ -164,7 +165,9 @@ class Dipole(PolicySearch):
 
     # ------------------------------------------------------------------ ask
     def _batch_size(self) -> int:
-        sampled = self.scouting.sampled_policies(self).numel() if bool(self.active.any()) else 0
+        sampled = (
+            self.scouting.sampled_policies(self).numel() if self.policy_set.any_active() else 0
+        )
         probes = self.vetting.probes()
         return (
             sampled
@@ -177,7 +180,7 @@ class Dipole(PolicySearch):
 
     def _propose(self) -> tuple[Tensor, Tensor]:
         """Policy samples, then scouts, then hill-valley probes."""
-        if bool(self.active.any()):
+        if self.policy_set.any_active():
             theta, owner = super()._propose()
         else:
             theta, owner = self.archive.thetas[:0], self.archive.owner[:0]
@@ -205,7 +208,7 @@ class Dipole(PolicySearch):
         self.importance.power_step(self)  # eq. 7 on each policy's importance set
         self.retirement.restart_straddlers(self)  # while policies are numbered as told
         self.vetting.judge(self)  # the probes told in this batch
-        restart = not bool(self.active.any())  # every policy retired: cluster the scouts
+        restart = not self.policy_set.any_active()  # every policy retired: cluster the scouts
         clustered = restart or self.iteration % self.cluster_every == 0
         if clustered:
             self._cluster()
@@ -327,10 +330,12 @@ class Dipole(PolicySearch):
         )
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict:
+    def _state(self, copy: bool) -> dict:
+        # (H and the DP state are kept as they are, copied or not: neither is ever changed,
+        # a clustering makes new ones.)
         return {
-            **super().state_dict(),
-            **self.vetting.state_dict(),
+            **super()._state(copy),
+            **self.vetting.state_dict(copy),
             **self.retirement.state_dict(),
             "initial_prior": None if self.sampler is None else self.sampler.prior.state_dict(),
             "dp_state": None if self.dp_state is None else self.dp_state.state_dict(),

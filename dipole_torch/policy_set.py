@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dipole_torch.memo import Memo
+
 __all__ = ["PolicyField", "PolicySet"]
 
 
@@ -41,6 +43,7 @@ class PolicySet:
         object.__setattr__(self, "_fields", {})
         object.__setattr__(self, "_tensors", {})
         object.__setattr__(self, "next_id", 0)
+        object.__setattr__(self, "_memo", Memo())
         self.means = means
         self.covariances = covariances
         self.active = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
@@ -82,6 +85,30 @@ class PolicySet:
 
     def __len__(self) -> int:
         return int(self._tensors["means"].shape[0])
+
+    # ------------------------------------------------------------------ derived, memoised
+    # Several mechanisms of one iteration need these while the tensors stand still
+    # (``Memo``: recomputed once a tensor is replaced or written into).
+    def active_flags(self) -> tuple[bool, ...]:
+        """Which policies are active, on the host (the mechanisms branch on it)."""
+        return self._memo.get("active", (self.active,), lambda: tuple(self.active.tolist()))
+
+    def any_active(self) -> bool:
+        """Whether some policy is active (on the host, from ``active_flags``)."""
+        return True in self.active_flags()
+
+    def exploration_factors(self) -> tuple[Tensor, Tensor]:
+        """``(L [K, D, D], ok [K])``: the Cholesky factors of the exploration covariances,
+        and whether each exists in float64 (where not, L is the identity). Not to be
+        written into."""
+
+        def compute() -> tuple[Tensor, Tensor]:
+            chol, info = torch.linalg.cholesky_ex(self.covariances)
+            ok = info == 0
+            eye = torch.eye(chol.shape[-1], dtype=chol.dtype, device=chol.device)
+            return torch.where(ok[:, None, None], chol, eye), ok
+
+        return self._memo.get("factors", (self.covariances,), compute)
 
     # ------------------------------------------------------------------ rows
     def index(self, keep: Tensor) -> None:
@@ -131,8 +158,13 @@ class PolicySet:
         "ids": "policy_ids",
     }
 
-    def state_dict(self) -> dict[str, Tensor | int]:
-        state = {self.KEYS.get(name, name): value.clone() for name, value in self._tensors.items()}
+    def state_dict(self, copy: bool = True) -> dict[str, Tensor | int]:
+        """Every tensor under its state key, and ``next_policy_id``: copies, or
+        (``copy=False``) the tensors themselves (see ``PolicySearch.tell``'s snapshot)."""
+        state = {
+            self.KEYS.get(name, name): value.clone() if copy else value
+            for name, value in self._tensors.items()
+        }
         return state | {"next_policy_id": self.next_id}
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:

@@ -35,7 +35,9 @@ __all__ = [
 ]
 
 
-def power_update(mean: Tensor, samples: Tensor, weights: Tensor) -> Tensor:
+def power_update(
+    mean: Tensor, samples: Tensor, weights: Tensor, *, validate: bool = True
+) -> Tensor:
     """Eq. 7 for K policies at once.
 
     θ_k ← θ_k + Σ_m w_km (θ_km − θ_k) / Σ_m w_km.
@@ -45,16 +47,18 @@ def power_update(mean: Tensor, samples: Tensor, weights: Tensor) -> Tensor:
         samples: ``[K, M, D]`` each policy's importance set (its best M samples).
         weights: ``[K, M]`` non-negative reward weights; 0 marks padding. A policy whose
             weights are all 0 keeps its mean.
+        validate: check the shapes and the weights' signs (``False``: weights built
+            non-negative, as ``PolicyImportance.slot_weights`` makes them).
 
     Returns:
         ``[K, D]`` updated parameters θ^(n).
     """
-    if samples.shape[:-1] != weights.shape or samples.shape[0] != mean.shape[0]:
+    if validate and (samples.shape[:-1] != weights.shape or samples.shape[0] != mean.shape[0]):
         raise ValueError(
             f"power_update: expected mean [K, D], samples [K, M, D], weights [K, M]; got "
             f"{list(mean.shape)}, {list(samples.shape)}, {list(weights.shape)}"
         )
-    if (weights < 0).any():
+    if validate and (weights < 0).any():
         raise ValueError("power_update: weights must be non-negative")
     total = weights.sum(-1, keepdim=True)  # [K, 1]
     step = (weights.unsqueeze(-1) * (samples - mean.unsqueeze(-2))).sum(-2)
@@ -105,8 +109,18 @@ def _importance_sets_numpy(
     bookkeeping (exact), in a fraction of the ~20 small-tensor ops' overhead. ``None`` for
     inputs whose handling is left to the torch path (empty, NaN, owners outside
     ``[0, num_policies)``), so errors and NaN ordering stay torch's."""
-    own = owner.numpy()
-    returns = rewards.detach().numpy()
+    sets = _importance_sets_arrays(owner.numpy(), rewards.detach().numpy(), num_policies, size)
+    if sets is None:
+        return None
+    keep, index = sets
+    return torch.from_numpy(keep), torch.from_numpy(index), torch.from_numpy(index >= 0)
+
+
+def _importance_sets_arrays(
+    own: np.ndarray, returns: np.ndarray, num_policies: int, size: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The numpy core of ``importance_sets``: ``(keep [N], index [K, M])``, or ``None`` for
+    the inputs left to the torch path."""
     n = own.shape[0]
     if n == 0 or np.isnan(returns).any() or own.min() < 0 or own.max() >= num_policies:
         return None
@@ -122,7 +136,57 @@ def _importance_sets_numpy(
     keep[chosen] = True
     index = np.full((num_policies, size), -1, dtype=np.int64)
     index[own[chosen], rank[in_set]] = chosen
-    return torch.from_numpy(keep), torch.from_numpy(index), torch.from_numpy(index >= 0)
+    return keep, index
+
+
+def importance_rows(
+    owner: Tensor, rewards: Tensor, num_policies: int, size: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``importance_sets`` of the samples that policies own, in an archive that holds
+    samples of no policy too (owner < 0), as rows of that archive.
+
+    Args:
+        owner: ``[N]`` policy index of every sample (< 0: no policy).
+        rewards: ``[N]`` rewards (higher is better).
+        num_policies: K.
+        size: M.
+
+    Returns:
+        kept ``[R]`` the rows to keep, in archive order: every sample of no policy and
+        every sample in an importance set;
+        index ``[K, M]`` the row of each slot (best first; in an empty slot the first owned
+        row, to be weighted 0);
+        valid ``[K, M]`` bool mask of filled slots.
+    """
+    if owner.device.type == "cpu" and rewards.device.type == "cpu":
+        rows = _importance_rows_numpy(owner, rewards, num_policies, size)
+        if rows is not None:
+            return rows
+    owned = (owner >= 0).nonzero().squeeze(-1)
+    keep, index, valid = importance_sets(owner[owned], rewards[owned], num_policies, size)
+    kept = owner < 0
+    kept[owned[keep]] = True
+    return kept.nonzero().squeeze(-1), owned[index.clamp_min(0)], valid
+
+
+def _importance_rows_numpy(
+    owner: Tensor, rewards: Tensor, num_policies: int, size: int
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """``importance_rows`` on CPU with numpy (exact integer bookkeeping, as
+    ``_importance_sets_numpy``); ``None`` for the inputs left to the torch path."""
+    own = owner.numpy()
+    owned = np.flatnonzero(own >= 0)
+    sets = _importance_sets_arrays(own[owned], rewards.detach().numpy()[owned], num_policies, size)
+    if sets is None:
+        return None
+    keep, index = sets
+    kept = own < 0
+    kept[owned[keep]] = True
+    return (
+        torch.from_numpy(np.flatnonzero(kept)),
+        torch.from_numpy(owned[np.maximum(index, 0)]),
+        torch.from_numpy(index >= 0),
+    )
 
 
 class PolicyImportance:
@@ -133,17 +197,17 @@ class PolicyImportance:
         """Eq. 7 for every active policy on its importance set; the other samples policies
         own are dropped (samples of no policy, the scouts, are kept)."""
         archive, policies = search.archive, search.policy_set
-        owned = (archive.owner >= 0).nonzero().squeeze(-1)
-        keep, index, valid = importance_sets(
-            archive.owner[owned], archive.rewards[owned], search.num_policies, search.M
+        kept, index, valid = importance_rows(
+            archive.owner, archive.rewards, search.num_policies, search.M
         )
-        index = owned[index.clamp_min(0)]  # slots -> rows of the kept samples
         weights = self.slot_weights(search, index, valid)
-        means = power_update(policies.means, archive.thetas[index], weights)
-        policies.means = torch.where(policies.active[:, None], means, policies.means)
-        mask = archive.owner < 0
-        mask[owned[keep]] = True
-        archive.keep(mask)
+        means = power_update(
+            policies.means, archive.thetas[index], weights, validate=not self.unit_weights(search)
+        )
+        if not all(policies.active_flags()):  # (else every policy takes its step)
+            means = torch.where(policies.active[:, None], means, policies.means)
+        policies.means = means
+        archive.keep(kept)
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         """``[K, M]`` eq. 7's weights of the importance-set slots ``index`` (``valid`` marks
@@ -161,6 +225,11 @@ class PolicyImportance:
         weights = torch.where(spread > 0, mapped, torch.ones_like(mapped))
         return weights * valid
 
+    def unit_weights(self, search: PolicySearch) -> bool:
+        """Whether ``slot_weights`` lie in [0, 1] by construction (``power_update`` then
+        need not check them)."""
+        return True
+
 
 class GlobalImportance(PolicyImportance):
     """The best K·M samples overall are kept; eq. 7 weighs each policy's best M among them by
@@ -169,15 +238,18 @@ class GlobalImportance(PolicyImportance):
 
     def power_step(self, search: PolicySearch) -> None:
         archive = search.archive
-        overall = torch.zeros_like(archive.rewards, dtype=torch.bool)
         top = min(search.num_policies * search.M, len(archive))
-        overall[torch.topk(archive.rewards, top).indices] = True
-        archive.keep(overall)
+        archive.keep(torch.topk(archive.rewards, top).indices.sort().values)  # archive order
         super().power_step(search)
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         rewards = search.archive.rewards
         return search.reward_scale.weights(rewards, reference=rewards)[index] * valid
+
+    def unit_weights(self, search: PolicySearch) -> bool:
+        """The reward scale's weights lie in [floor, 1], but for positive returns used as
+        they are (a loaded state may hold any)."""
+        return not search.reward_scale.positive
 
 
 def make_importance(kind: str) -> PolicyImportance:

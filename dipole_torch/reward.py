@@ -81,6 +81,11 @@ class RewardScale:
         """Raise ``ValueError`` on non-finite rewards, or rewards this scale cannot map;
         ``first``: they are the run's first batch; ``name``: the argument to name."""
         check_finite(rewards, name)
+        self.check_range(rewards, first, name)
+
+    def check_range(self, rewards: Tensor, first: bool = False, name: str = "rewards") -> None:
+        """``validate`` for rewards already checked finite (``check_rewards``): raise
+        ``ValueError`` on rewards this scale cannot map."""
         if self.positive:
             if (rewards <= 0).any():
                 raise ValueError(
@@ -182,8 +187,9 @@ def check_rewards(rewards, batch: int, each: str = "asked θ", name: str = "rewa
         raise ValueError(
             f"{name} must have shape [{batch}] (one per {each}), got {list(rewards.shape)}"
         )
-    if rewards.dtype == torch.bool or not (rewards.is_floating_point() or rewards.dtype.is_signed):
-        raise ValueError(f"{name} must be real numbers, got dtype {rewards.dtype}")
+    dtype = rewards.dtype
+    if dtype == torch.bool or not (dtype.is_floating_point or dtype.is_signed):
+        raise ValueError(f"{name} must be real numbers, got dtype {dtype}")
     if rewards.device.type == "meta":
         raise ValueError(f"{name} is a meta tensor (no values)")
     check_finite(rewards, name)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import torch
@@ -27,6 +27,7 @@ from dipole_torch.inputs import (
     check_in_box,
     into_box,
     make_box,
+    told_as_asked,
 )
 from dipole_torch.policy_set import PolicySet
 from dipole_torch.result import SearchResult
@@ -51,12 +52,48 @@ class TellBatch:
     """What one ``tell`` reports, as the optimizer's mechanisms see it (float64, on the
     optimizer's device): ``theta [B, D]``, ``rewards [B]``, ``owner [B]`` (see
     ``dipole_torch.archive``: a policy, a scout, a probe) and whether the ask was ``cut``
-    to its first B rows."""
+    to its first B rows.
+
+    An ask lists its rows in groups (``_propose``): the policy samples, one per sampled
+    policy; then the scouts (``NO_POLICY``); then the probes (``PROBE``). The mechanisms
+    take a group as a slice (``rewards[:batch.policy_rows]``), not through a boolean mask
+    (a gather, several times the cost); ``policies`` lists the sampled policies on the
+    host. Built from ``owner`` (one ``tolist``); rows out of that order are refused.
+    """
 
     theta: Tensor
     rewards: Tensor
     owner: Tensor
     cut: bool
+    policies: tuple[int, ...] = field(init=False)  # owner[:policy_rows]
+    sample_rows: int = field(init=False)  # the rows before the probes
+
+    def __post_init__(self) -> None:
+        owners = self.owner.tolist()
+        policy_rows = next((i for i, o in enumerate(owners) if o < 0), len(owners))
+        sample_rows = next(
+            (i for i in range(policy_rows, len(owners)) if owners[i] == PROBE), len(owners)
+        )
+        if any(o >= 0 for o in owners[policy_rows:]) or any(
+            o != PROBE for o in owners[sample_rows:]
+        ):
+            raise ValueError(
+                f"a told batch lists its policy samples, then scouts, then probes; got owners "
+                f"{owners}"
+            )
+        object.__setattr__(self, "policies", tuple(owners[:policy_rows]))
+        object.__setattr__(self, "sample_rows", sample_rows)
+
+    @property
+    def policy_rows(self) -> int:
+        """The batch's first rows that are policy samples."""
+        return len(self.policies)
+
+    def every_policy(self, num_policies: int) -> bool:
+        """Whether the policy samples are one of each of the ``num_policies`` policies, in
+        order: rows ``[:num_policies]`` are then per-policy tensors as they stand (no gather
+        or scatter by ``owner``)."""
+        return self.policies == tuple(range(num_policies))
 
 
 class PolicySearch:
@@ -116,6 +153,7 @@ class PolicySearch:
         self.device = theta0.device
         self.theta0 = theta0.to(DTYPE)
         self.sigma_start = sigma
+        self._start_variances = sigma.diagonal()  # [D] (a view: it follows Σ_start)
         self.box = make_box(bounds, self.theta0)
         self.M = int(M)
         self.n0 = int(n0)
@@ -134,6 +172,7 @@ class PolicySearch:
         self._best_reward = -math.inf
         self._pending: Tensor | None = None
         self._pending_owner: Tensor | None = None
+        self._pending_boxed = False  # the pending rows were projected by this ask (not loaded)
 
     # ------------------------------------------------------------------ views
     @property
@@ -193,7 +232,7 @@ class PolicySearch:
         """``[K]`` each policy's largest exploration std relative to Σ_start's, per axis
         (or that of ``covariances [..., D, D]``)."""
         covs = self.policy_covariances if covariances is None else covariances
-        ratio = covs.diagonal(dim1=-2, dim2=-1) / self.sigma_start.diagonal()
+        ratio = covs.diagonal(dim1=-2, dim2=-1) / self._start_variances
         return ratio.amax(-1).sqrt()
 
     @property
@@ -284,6 +323,7 @@ class PolicySearch:
             theta, owner = self._propose()
         theta = into_box(self.box, theta)
         self._pending, self._pending_owner = theta, owner
+        self._pending_boxed = True
         if max_rows is not None:
             theta = theta[: int(max_rows)]
         return theta.to(self.dtype)
@@ -331,12 +371,14 @@ class PolicySearch:
                 f"ask, or its first n (1 <= n <= {asked})"
             )
         check_finite(theta, "theta")
-        check_in_box(self.box, theta)
-        check_asked(self._pending, theta)
+        # Rows told as this optimizer asked them lie in its box: one comparison checks both.
+        if not (self._pending_boxed and told_as_asked(self._pending, theta)):
+            check_in_box(self.box, theta)
+            check_asked(self._pending, theta)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
-        self.reward_scale.validate(rewards, first=not self.started)  # before any change
+        self.reward_scale.check_range(rewards, first=not self.started)  # before any change
         theta = into_box(self.box, theta.detach().to(device=self.device, dtype=DTYPE))
-        snapshot = self.state_dict()
+        snapshot = self._snapshot()
         try:
             self._tell(theta, rewards)
             if self.box is not None:
@@ -353,23 +395,30 @@ class PolicySearch:
         batch = TellBatch(theta, rewards, owner, cut=owner.shape[0] < self._pending_owner.shape[0])
         self._pending = self._pending_owner = None
         self._observe(batch)
-        policy_rows = owner >= 0
-        self.policy_samples += int(policy_rows.sum()) if not first else 0
-        sample = owner != PROBE  # probes are evaluations, not samples
-        self.archive.append(theta[sample], rewards[sample], owner[sample])
+        policy_rows = batch.policy_rows
+        self.policy_samples += policy_rows if not first else 0
+        samples = batch.sample_rows  # probes are evaluations, not samples
+        if samples == theta.shape[0]:
+            self.archive.append(theta, rewards, owner)
+        else:
+            self.archive.append(theta[:samples], rewards[:samples], owner[:samples])
         self.trials += theta.shape[0]
+        k = self.num_policies
         if first:
             self.last_rewards = rewards
+        elif batch.every_policy(k):
+            self.last_rewards = rewards[:policy_rows].clone()
         else:
             # Each policy's latest return: the sampled ones' new returns; a policy that drew
             # no sample keeps the mean return of its kept samples.
-            sampled = torch.zeros(self.num_policies, dtype=torch.bool, device=self.device)
-            sampled[owner[policy_rows]] = True
-            held = self.archive.mean_rewards(self.num_policies)[~sampled]
-            self.last_rewards = torch.cat((rewards[policy_rows], held))
-        best = int(rewards.argmax())
-        if float(rewards[best]) > self._best_reward:
-            self._best_reward = float(rewards[best])
+            sampled = torch.zeros(k, dtype=torch.bool, device=self.device)
+            sampled[owner[:policy_rows]] = True
+            held = self.archive.mean_rewards(k)[~sampled]
+            self.last_rewards = torch.cat((rewards[:policy_rows], held))
+        values = rewards.tolist()
+        best = max(range(len(values)), key=values.__getitem__)  # the first best, as argmax
+        if values[best] > self._best_reward:
+            self._best_reward = values[best]
             self._best_theta = theta[best].clone()
         if first:
             self._after_initial_batch()
@@ -414,8 +463,8 @@ class PolicySearch:
             raise RuntimeError("reevaluate() needs a started run: tell() the first batch first")
         returns = check_rewards(returns, self.num_policies, "stored policy", "returns")
         returns = returns.to(self.device)
-        self.reward_scale.validate(returns, name="returns")
-        snapshot = self.state_dict()
+        self.reward_scale.check_range(returns, name="returns")
+        snapshot = self._snapshot()
         try:
             self._reevaluate(returns.to(DTYPE))
         except BaseException:
@@ -454,18 +503,35 @@ class PolicySearch:
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        """Everything needed to continue the run exactly, generator state included."""
+        """Everything needed to continue the run exactly, generator state included (copies:
+        the run goes on without changing them)."""
+        return self._state(copy=True)
+
+    def _snapshot(self) -> dict:
+        """What ``_load_state_dict`` needs to undo a call that raised: ``state_dict``
+        without its copies, the optimizer's tensors themselves. The snapshot stays as it was
+        because every step of a run *replaces* a tensor it changes (``policy_set.means =
+        …``) and never writes into one; a step that must write into a tensor writes into
+        its own copy (``Retirement.restart_straddlers``)."""
+        return self._state(copy=False)
+
+    def _state(self, copy: bool) -> dict:
+        """The entries of ``state_dict``: the tensors copied, or (``copy=False``) not."""
+
+        def kept(tensor: Tensor | None) -> Tensor | None:
+            return tensor.clone() if copy and tensor is not None else tensor
+
         return {
-            **self.archive.state_dict(),
-            **self.policy_set.state_dict(),
-            "last_rewards": self.last_rewards.clone(),
+            **self.archive.state_dict(copy),
+            **self.policy_set.state_dict(copy),
+            "last_rewards": kept(self.last_rewards),
             "trials": self.trials,
             "iteration": self.iteration,
             "policy_samples": self.policy_samples,
-            "best_theta": self._best_theta.clone(),
+            "best_theta": kept(self._best_theta),
             "best_reward": self._best_reward,
-            "pending": None if self._pending is None else self._pending.clone(),
-            "pending_owner": None if self._pending_owner is None else self._pending_owner.clone(),
+            "pending": kept(self._pending),
+            "pending_owner": kept(self._pending_owner),
             "generator": self.generator.get_state(),
             "kind": type(self).__name__,
         }
@@ -480,7 +546,7 @@ class PolicySearch:
             raise ValueError(
                 f"state_dict is from a {state.get('kind')}, not a {type(self).__name__}"
             )
-        snapshot = self.state_dict()
+        snapshot = self._snapshot()
         try:
             self._load_state_dict(state)
         except BaseException:
@@ -507,6 +573,7 @@ class PolicySearch:
             pending, owner = state["pending"], state["pending_owner"]
             self._pending = None if pending is None else pending.to(self.device)
             self._pending_owner = None if owner is None else owner.to(self.device)
+            self._pending_boxed = False  # (rows from elsewhere: checked against the box)
             self.generator.set_state(state["generator"])
         except KeyError as missing:
             raise ValueError(

@@ -44,9 +44,8 @@ def check_finite(tensor: Tensor, name: str) -> None:
         raise ValueError(f"{name} is a meta tensor (no values): give it on a real device")
     if tensor.is_complex():
         raise ValueError(f"{name} must be real numbers, got dtype {tensor.dtype}")
-    bad = ~torch.isfinite(tensor)
-    if bad.any():
-        first = tuple(int(i) for i in bad.nonzero()[0])
+    if not bool(torch.isfinite(tensor).all()):
+        first = tuple(int(i) for i in (~torch.isfinite(tensor)).nonzero()[0])
         raise ValueError(f"{name} contains non-finite values (first at index {first})")
 
 

@@ -122,3 +122,23 @@ def test_draw_gaussian_equals_draw_of_the_distribution(monkeypatch, shape, d, lo
     slow = forked(monkeypatch, draw, mvn, shape, slow_gen)
     assert fast.shape == slow.shape and torch.equal(fast, slow)
     assert torch.equal(fast_gen.get_state(), slow_gen.get_state())
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_importance_rows_numpy_equals_torch(seed):
+    # An archive with samples of no policy (owner -1) among the policies' own.
+    g = torch.Generator().manual_seed(seed)
+    n = int(torch.randint(1, 40, (1,), generator=g))
+    k = int(torch.randint(1, 5, (1,), generator=g))
+    size = int(torch.randint(1, 6, (1,), generator=g))
+    owner = torch.randint(-1, k, (n,), generator=g)
+    owner[int(torch.randint(0, n, (1,), generator=g))] = 0  # some row is owned
+    rewards = torch.randint(-3, 4, (n,), generator=g).to(F64) * 0.5  # ties
+    fast = power_module._importance_rows_numpy(owner, rewards, k, size)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(power_module, "_importance_rows_numpy", lambda *args: None)
+        patch.setattr(power_module, "_importance_sets_numpy", lambda *args: None)
+        slow = power_module.importance_rows(owner, rewards, k, size)
+    assert fast is not None
+    for a, b in zip(fast, slow, strict=True):
+        assert a.dtype == b.dtype and torch.equal(a, b)

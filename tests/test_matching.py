@@ -39,3 +39,31 @@ def test_adopted_components_become_the_policies_the_best_max_policies_kept():
     assert opt.num_policies == 2 and torch.equal(opt.policy_means, state.means[:2, :2])
     assert opt.owner.tolist() == [0, 0, 1]  # its sample went with it
     assert opt.active.all() and (opt.policy_set.success == 2.0 / 11.0).all()
+
+
+def _match_by_overlap_on_tensors(labels, old, num_components, policies):
+    """The greedy matching on tensors (argmax of the flattened counts), as a reference."""
+    overlap = torch.zeros(num_components, policies.numel(), dtype=torch.long)
+    overlap.index_put_((labels, old), torch.ones_like(labels), accumulate=True)
+    continues = torch.full((num_components,), -1, dtype=torch.long)
+    while bool((overlap > 0).any()):
+        c, j = divmod(int(overlap.argmax()), overlap.shape[1])
+        continues[c] = int(policies[j])
+        overlap[c] = 0
+        overlap[:, j] = 0
+    return continues
+
+
+def test_the_host_matching_equals_the_greedy_matching_on_tensors():
+    # Many ties (few samples, few components and policies): the first in the flattened
+    # order is matched first either way.
+    g = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        n = int(torch.randint(1, 12, (1,), generator=g))
+        c = int(torch.randint(1, 5, (1,), generator=g))
+        p = int(torch.randint(1, 5, (1,), generator=g))
+        labels = torch.randint(0, c, (n,), generator=g)
+        old = torch.randint(0, p, (n,), generator=g)
+        policies = torch.randperm(10, generator=g)[:p]
+        expected = _match_by_overlap_on_tensors(labels, old, c, policies)
+        assert torch.equal(match_by_overlap(labels, old, c, policies), expected)

@@ -93,3 +93,33 @@ def test_a_state_of_another_dimension_is_refused(build):
     with pytest.raises(ValueError, match=r"state_dict\['thetas'\] must have shape \[N, 2\]"):
         two.load_state_dict(three.state_dict())
     two.load_state_dict(before)
+
+
+def test_the_archive_memos_follow_every_change():
+    # per_policy, counts and best_samples are memoised while the archive stands still: a
+    # tensor replaced or written into, or a memoised value written into, recomputes them.
+    archive = SampleArchive(1, torch.device("cpu"))
+    archive.append(
+        torch.tensor([[0.0], [1.0], [2.0]], dtype=F64),
+        torch.tensor([1.0, 5.0, 3.0], dtype=F64),
+        torch.tensor([0, 1, -1]),
+    )
+    means = torch.zeros(2, 1, dtype=F64)
+    best = archive.per_policy("amax", 2)
+    assert archive.per_policy("amax", 2) is best  # a hit
+    archive.rewards[0] = 7.0  # written into
+    assert archive.per_policy("amax", 2).tolist() == [7.0, 5.0]
+    archive.owner = torch.tensor([0, 0, -1])  # replaced
+    assert archive.per_policy("amax", 2).tolist() == [7.0, -math.inf]
+    assert archive.counts(2).tolist() == [2, 0]
+    assert archive.best_samples(means)[:, 0].tolist() == [0.0, 0.0]
+    archive.thetas[0, 0] = 4.0
+    assert archive.best_samples(means)[:, 0].tolist() == [4.0, 0.0]
+    archive.best_samples(means)[0, 0] = 9.0  # a memoised value written into
+    assert archive.best_samples(means)[:, 0].tolist() == [4.0, 0.0]
+    assert archive.per_policy("amax", 3).tolist() == [7.0, -math.inf, -math.inf]
+    with torch.inference_mode():  # no version counters: nothing memoised, same numbers
+        frozen = SampleArchive(1, torch.device("cpu"))
+        frozen.append(archive.thetas.clone(), archive.rewards.clone(), archive.owner.clone())
+        assert frozen.per_policy("amax", 2).tolist() == [7.0, -math.inf]
+        assert frozen.best_samples(means)[:, 0].tolist() == [4.0, 0.0]

@@ -185,6 +185,29 @@ def test_tell_is_transactional_over_every_rejected_input(name, reward_range, mon
     assert {what for what, count in raised.items() if count} >= expected, raised
 
 
+@pytest.mark.parametrize("name", list(BUILDERS))
+def test_a_tell_that_raises_after_all_its_changes_is_undone(name, monkeypatch):
+    """A failure at the very end of tell(), after every step of the iteration ran (its
+    snapshot holds the optimizer's tensors uncopied: no step may write into one)."""
+    opt = BUILDERS[name](torch.Generator().manual_seed(2), bounds=(-3.0, 3.0))
+    for iteration in range(40):
+        theta = opt.ask()
+        probe = BUILDERS[name](torch.Generator(), bounds=(-3.0, 3.0))
+        probe.load_state_dict(opt.state_dict())
+        before = probe.state_dict()
+        tell = probe._tell
+
+        def tell_then_fail(*args, tell=tell):
+            tell(*args)
+            raise RuntimeError("failed after the iteration")
+
+        monkeypatch.setattr(probe, "_tell", tell_then_fail)
+        with pytest.raises(RuntimeError, match="after the iteration"):
+            probe.tell(theta, bumps(theta))
+        assert_same(probe.state_dict(), before, f"iteration {iteration}")
+        opt.tell(theta, bumps(theta))
+
+
 def test_tell_without_ask_changes_nothing():
     opt = advance(BUILDERS["dipole"](torch.Generator().manual_seed(0)), 2)
     theta = opt.ask()

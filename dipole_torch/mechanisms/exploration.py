@@ -123,33 +123,43 @@ class SuccessRule:
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """The success rule on the batch's policy samples (before they are archived, so a
         success is judged against the policy's kept samples)."""
-        if not search.started:
+        if not search.started or batch.policy_rows == 0:
             return
         policies = search.policy_set
-        rows = batch.owner >= 0
-        policy = batch.owner[rows]
-        succeeded = batch.rewards[rows] > search.policy_best_rewards[policy]
+        n = batch.policy_rows
+        # Usually every policy drew one sample, in order: the policies' rows as they stand,
+        # written back whole; otherwise the sampled rows, gathered and scattered.
+        every = batch.every_policy(len(policies))
+        policy = batch.owner[:n]
+
+        def rows(tensor: Tensor) -> Tensor:
+            return tensor if every else tensor[policy]
+
+        succeeded = batch.rewards[:n] > rows(search.policy_best_rewards)
         constants = self.parameters
         c_c, c_cov = constants.path_rate, constants.covariance_rate
-        step = batch.theta[rows] - policies.means[policy]
-        paths = policies.paths[policy]
-        paths = torch.where(
-            succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
-        )
-        covs = policies.covariances[policy]
-        rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
-        covs = torch.where(succeeded[:, None, None], rank_one, covs)
+        paths, covs = rows(policies.paths), rows(policies.covariances)
+        if True in succeeded.tolist():  # (most samples fail: paths and Σ then stand)
+            step = batch.theta[:n] - rows(policies.means)
+            paths = torch.where(
+                succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
+            )
+            rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
+            covs = torch.where(succeeded[:, None, None], rank_one, covs)
         c = constants.smoothing
-        success = (1 - c) * policies.success[policy] + c * succeeded.to(DTYPE)
+        success = (1 - c) * rows(policies.success) + c * succeeded.to(DTYPE)
         p_t = constants.target_success
         factor = torch.exp((success - p_t) / (constants.damping * (1 - p_t)))
         relative = search.relative_std(covs)
         factor = torch.minimum(factor, 1.0 / relative.clamp_min(1e-300))
-        policies.paths, policies.success = policies.paths.clone(), policies.success.clone()
-        policies.covariances = policies.covariances.clone()
-        policies.paths[policy] = paths * factor[:, None]  # in the scale's units, as Σ
-        policies.success[policy] = success
-        policies.covariances[policy] = covs * factor[:, None, None] ** 2
+        paths = paths * factor[:, None]  # in the scale's units, as Σ
+        covs = covs * factor[:, None, None] ** 2
+        if every:
+            policies.paths, policies.success, policies.covariances = paths, success, covs
+        else:
+            policies.paths = policies.paths.index_put((policy,), paths)
+            policies.success = policies.success.index_put((policy,), success)
+            policies.covariances = policies.covariances.index_put((policy,), covs)
 
     def starting_covariance(self, search: PolicySearch, covariances: Tensor) -> Tensor:
         """``[..., D, D]`` Σ_start's shape at the spread of the posterior ``covariances``:

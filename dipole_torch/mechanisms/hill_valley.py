@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from dipole_torch.archive import PROBE
 from dipole_torch.gaussian import DTYPE
 
 if TYPE_CHECKING:
@@ -52,7 +51,7 @@ class NoVetting:
     def forget(self) -> None:
         pass
 
-    def state_dict(self) -> dict:
+    def state_dict(self, copy: bool = True) -> dict:
         return {}
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
@@ -116,14 +115,16 @@ class HillValley(NoVetting):
     # ------------------------------------------------------------------ ask and tell
     def probes(self) -> Tensor | None:
         """``[P, D]`` the probes of the next ask: the candidates', then the pairs'."""
-        probes = torch.cat((self.candidate_probes, self.pair_probes))
-        return probes if probes.shape[0] else None
+        if self.candidate_probes.shape[0] == 0 and self.pair_probes.shape[0] == 0:
+            return None  # (the usual case: no concatenation)
+        return torch.cat((self.candidate_probes, self.pair_probes))
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """Keep the probes' returns; a cut ask left tests unjudgeable: forget them."""
         if batch.cut:
             self.forget()
-        self.probe_rewards = batch.rewards[batch.owner == PROBE]
+        # The probes come last. (A copy: the told returns may be the caller's tensor.)
+        self.probe_rewards = batch.rewards[batch.sample_rows :].clone()
 
     def forget(self) -> None:
         """Empty the queues of tests (candidates and pairs) and their probes (a cut ask, or
@@ -218,7 +219,7 @@ class HillValley(NoVetting):
         candidates that became policies."""
         index = accept.nonzero().squeeze(-1)
         if self.max_policies is not None:
-            room = max(self.max_policies - int(search.active.sum()), 0)
+            room = max(self.max_policies - sum(search.policy_set.active_flags()), 0)
             index = index[torch.argsort(self.candidate_rewards[index], descending=True)][:room]
         n = index.numel()
         if n:
@@ -242,7 +243,7 @@ class HillValley(NoVetting):
         Each pair's ``pair_points`` probes lie at i/(pair_points + 1) of the way between the
         two best samples: between two policies still far below their tops the valley lies
         nearer the worse one, where a midpoint can miss it."""
-        if search.num_policies < 2 or not bool(search.active.any()):
+        if search.num_policies < 2 or not search.policy_set.any_active():
             self._clear_pairs()
             return
         best = search.archive.best_samples(search.policy_means)
@@ -292,8 +293,13 @@ class HillValley(NoVetting):
         return torch.cdist(points / scale, others / scale)
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict[str, Tensor]:
-        return {name: getattr(self, name).clone() for name in self.TENSORS}
+    def state_dict(self, copy: bool = True) -> dict[str, Tensor]:
+        """The queues: copies, or (``copy=False``) the tensors themselves, which the
+        queues replace and never write into."""
+        return {
+            name: getattr(self, name).clone() if copy else getattr(self, name)
+            for name in self.TENSORS
+        }
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
         for name in self.TENSORS:

@@ -26,9 +26,8 @@ import torch
 from torch import Tensor
 
 from dipole_torch.dp.state import DPMixtureState
-from dipole_torch.gaussian import DTYPE
 from dipole_torch.policy_set import PolicyField
-from dipole_torch.power import importance_sets
+from dipole_torch.power import importance_rows
 
 if TYPE_CHECKING:
     from dipole_torch.dipole import Dipole
@@ -64,10 +63,10 @@ def adopt_components(search: Dipole, state: DPMixtureState) -> Tensor:
 
 
 def keep_importance_sets(search: Dipole) -> None:
-    """Keep each policy's best M samples (scouts are dropped)."""
+    """Keep each policy's best M samples (every sample has a policy here)."""
     archive = search.archive
-    keep, _, _ = importance_sets(archive.owner, archive.rewards, search.num_policies, search.M)
-    archive.keep(keep)
+    kept, _, _ = importance_rows(archive.owner, archive.rewards, search.num_policies, search.M)
+    archive.keep(kept)
 
 
 class ReplaceMatching:
@@ -138,44 +137,58 @@ class OverlapMatching:
 
     def apply(self, search: Dipole, rows: Tensor, y: Tensor, state: DPMixtureState) -> None:
         """Continue, create, vet or drop policies after a clustering ``state`` of ``y``
-        (the augmented samples ``rows`` of the archive)."""
+        (the augmented samples ``rows`` of the archive).
+
+        Which component continues which policy, which become new ones and where every
+        sample goes is bookkeeping over a handful of integers (policies, components, one
+        clustering's samples): it runs on the host, each tensor read once (``tolist``);
+        only the new policies' means and covariances are tensor maths."""
         d = search.dim
         archive, policies = search.archive, search.policy_set
         search.dp_state = state
         labels = state.labels
         k_new = state.num_components
-        old = archive.owner[rows]
-        clustered = search.clustered_policies
-        active = clustered.nonzero().squeeze(-1)
-        compact = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
-        compact[active] = torch.arange(active.numel(), device=search.device)
-        owned = old >= 0
-        continues = match_by_overlap(labels[owned], compact[old[owned]], k_new, active)
+        label_of = labels.tolist()  # [N'] the component of each clustered sample
+        row_of = rows.tolist()  # [N'] its archive row
+        owner_of = archive.owner.tolist()  # [N] every sample's policy
+        returns = archive.rewards[rows].tolist()  # [N']
+        clustered = search.clustered_policies.tolist()  # [K]
+        k = len(clustered)
+        active = [j for j in range(k) if clustered[j]]
+        compact = [-1] * k  # a clustered policy's position among them
+        for position, j in enumerate(active):
+            compact[j] = position
+        owned = [
+            (label_of[i], compact[owner_of[r]]) for i, r in enumerate(row_of) if owner_of[r] >= 0
+        ]
+        continues = _match_by_overlap(owned, k_new, active)
         # New components, best sample first, while there is room.
-        rewards = archive.rewards[rows]
-        fresh = (continues < 0).nonzero().squeeze(-1)
-        component_best = torch.full((k_new,), -math.inf, dtype=DTYPE, device=search.device)
-        component_best = component_best.scatter_reduce(0, labels, rewards, "amax")
-        fresh = fresh[torch.argsort(component_best[fresh], descending=True, stable=True)]
+        component_best = [-math.inf] * k_new
+        for c, value in zip(label_of, returns, strict=True):
+            component_best[c] = max(component_best[c], value)
+        fresh = [c for c in range(k_new) if continues[c] < 0]
+        fresh.sort(key=component_best.__getitem__, reverse=True)  # (stable: ties by index)
+        continued = [c for c in range(k_new) if continues[c] >= 0]
         max_policies = search.options.max_policies
-        refining = int((policies.active & ~clustered).sum())
+        flags = policies.active_flags()
+        refining = sum(1 for j in range(k) if flags[j] and not clustered[j])
         room = (
-            fresh.numel()
-            if max_policies is None
-            else max(max_policies - refining - int((continues >= 0).sum()), 0)
+            len(fresh) if max_policies is None else max(max_policies - refining - len(continued), 0)
         )
         fresh = fresh[:room]
         # The policies after it: those left out (retired, refining), continued ones, then new
         # ones.
-        keep_old = torch.cat(((~clustered).nonzero().squeeze(-1), continues[continues >= 0]))
-        new_index = torch.full((search.num_policies,), -1, dtype=torch.long, device=search.device)
-        new_index[keep_old] = torch.arange(keep_old.numel(), device=search.device)
-        component_policy = torch.full((k_new,), -1, dtype=torch.long, device=search.device)
-        component_policy[continues >= 0] = new_index[continues[continues >= 0]]
-        vet = search.vetting.vets_new_policies and keep_old.numel() > 0
+        keep_old = [j for j in range(k) if not clustered[j]] + [continues[c] for c in continued]
+        new_index = [-1] * k
+        for position, j in enumerate(keep_old):
+            new_index[j] = position
+        component_policy = [-1] * k_new
+        for c in continued:
+            component_policy[c] = new_index[continues[c]]
+        vet = search.vetting.vets_new_policies and len(keep_old) > 0
         weights = y[:, -1]
         new_means, new_covs, candidates = [], [], []
-        for c in fresh.tolist():
+        for c in fresh:
             members = labels == c
             w = weights[members]
             mean = (w[:, None] * y[members, :d]).sum(0) / w.sum()  # eq. 7's average
@@ -183,25 +196,28 @@ class OverlapMatching:
                 search, state.covariances[c, :d, :d]
             )
             if vet:
-                # Its best sample, to be compared with the nearest policy's; its samples
-                # leave the data meanwhile.
-                best = int(torch.where(members, rewards, -math.inf).argmax())
-                candidates.append((mean, covariance, y[best, :d], rewards[best]))
+                # Its best sample (the first best, as argmax), to be compared with the
+                # nearest policy's; its samples leave the data meanwhile.
+                own = [i for i, label in enumerate(label_of) if label == c]
+                best = max(own, key=returns.__getitem__)
+                candidates.append((mean, covariance, y[best, :d], archive.rewards[row_of[best]]))
                 continue
-            component_policy[c] = keep_old.numel() + len(new_means)
+            component_policy[c] = len(keep_old) + len(new_means)
             new_means.append(mean)
             new_covs.append(covariance)
         if candidates:
             search.vetting.add_candidates(*(torch.stack(x) for x in zip(*candidates, strict=True)))
-        policies.index(keep_old)
+        policies.index(torch.tensor(keep_old, dtype=torch.long, device=search.device))
         if new_means:
             policies.extend(torch.stack(new_means), torch.stack(new_covs))
         # Re-own the samples: those left out keep theirs, clustered ones follow their component
         # (a component that became no policy loses its samples).
-        owner = new_index[archive.owner.clamp_min(0)]
-        owner[rows] = component_policy[labels]
-        archive.owner = owner
-        archive.keep(owner >= 0)
+        owner = [new_index[o] if o >= 0 else -1 for o in owner_of]
+        for r, c in zip(row_of, label_of, strict=True):
+            owner[r] = component_policy[c]
+        kept = [i for i, o in enumerate(owner) if o >= 0]
+        archive.owner = torch.tensor(owner, dtype=torch.long, device=search.device)
+        archive.keep(torch.tensor(kept, dtype=torch.long, device=search.device))
         keep_importance_sets(search)
 
 
@@ -216,17 +232,34 @@ def match_by_overlap(labels: Tensor, old: Tensor, num_components: int, policies:
         num_components: C.
         policies: ``[P]`` the old policies' indices.
     """
-    overlap = torch.zeros(num_components, policies.numel(), dtype=torch.long, device=labels.device)
-    overlap.index_put_((labels, old), torch.ones_like(labels), accumulate=True)
-    continues = torch.full((num_components,), -1, dtype=torch.long, device=labels.device)
-    remaining = overlap.clone()
-    while bool((remaining > 0).any()):
-        flat = int(remaining.argmax())
-        c, j = divmod(flat, remaining.shape[1])
-        continues[c] = int(policies[j])
-        remaining[c] = 0
-        remaining[:, j] = 0
-    return continues
+    pairs = list(zip(labels.tolist(), old.tolist(), strict=True))
+    continues = _match_by_overlap(pairs, num_components, policies.tolist())
+    return torch.tensor(continues, dtype=torch.long, device=labels.device)
+
+
+def _match_by_overlap(
+    pairs: list[tuple[int, int]], num_components: int, policies: list[int]
+) -> list[int]:
+    """``match_by_overlap`` on the host: ``pairs`` lists (component, position in
+    ``policies``) of each sample an old policy owned. Of equal overlaps the first in
+    (component, policy) order is matched first, as ``argmax`` of the flattened counts."""
+    overlap = [[0] * len(policies) for _ in range(num_components)]
+    for c, j in pairs:
+        overlap[c][j] += 1
+    continues = [-1] * num_components
+    while True:
+        most, at = 0, None
+        for c, row in enumerate(overlap):
+            for j, count in enumerate(row):
+                if count > most:
+                    most, at = count, (c, j)
+        if at is None:
+            return continues
+        c, j = at
+        continues[c] = policies[j]
+        overlap[c] = [0] * len(policies)
+        for row in overlap:
+            row[j] = 0
 
 
 def _start_labels(owner: Tensor, num_policies: int) -> Tensor:

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
+from dipole_torch.memo import Memo
 from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
@@ -49,10 +50,7 @@ def exploration_distance(search: PolicySearch, diff: Tensor) -> Tensor:
     """``[K, P]`` the Mahalanobis lengths of ``diff: [K, P, D]`` under each policy's
     exploration covariance (row k under policy k's); inf in the rows whose covariance has
     lost definiteness in float64."""
-    chol, info = torch.linalg.cholesky_ex(search.policy_covariances)
-    ok = info == 0
-    eye = torch.eye(search.dim, dtype=DTYPE, device=search.device)
-    chol = torch.where(ok[:, None, None], chol, eye)
+    chol, ok = search.policy_set.exploration_factors()
     z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
     return torch.where(ok[:, None], z.square().sum(-2).sqrt(), math.inf)
 
@@ -144,14 +142,21 @@ class Waking(NoWaking):
         self.barren_refine_trials = 0
         self.known_ids = 0
         self.low, self.high = math.inf, -math.inf  # every told return's range
+        self._memo = Memo()
 
     def register(self, search: PolicySearch) -> None:
         search.policy_set.register("refinements", PolicyField(default=0, dtype=torch.long))
 
     def thresholds(self, search: PolicySearch, retire_std: float) -> Tensor:
-        """``[K]`` each policy's retirement threshold, ``retire_std · refine**n``."""
-        n = search.policy_set.refinements.to(DTYPE)
-        return retire_std * torch.pow(torch.tensor(self.refine, dtype=DTYPE), n)
+        """``[K]`` each policy's retirement threshold, ``retire_std · refine**n`` (memoised
+        while the wake counts stand still: not to be written into)."""
+        refinements = search.policy_set.refinements
+
+        def compute() -> Tensor:
+            n = refinements.to(DTYPE)
+            return retire_std * torch.pow(torch.tensor(self.refine, dtype=DTYPE), n)
+
+        return self._memo.get(("thresholds", retire_std), (refinements,), compute)
 
     def refining(self, search: PolicySearch) -> Tensor:
         """``[K]`` the policies that were woken (n > 0)."""
@@ -159,14 +164,15 @@ class Waking(NoWaking):
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """The returns' range; the trials of restarts and of woken policies."""
-        self.low = min(self.low, float(batch.rewards.min()))
-        self.high = max(self.high, float(batch.rewards.max()))
+        returns = batch.rewards.tolist()
+        self.low = min(self.low, min(returns))
+        self.high = max(self.high, max(returns))
         if not search.started or self.converged_at < 0:
             return
-        if not bool(search.active.any()):
-            self.barren_restart_trials += int(batch.rewards.shape[0])
+        if not search.policy_set.any_active():
+            self.barren_restart_trials += len(returns)
             return
-        owner = batch.owner[batch.owner >= 0]
+        owner = batch.owner[: batch.policy_rows]
         woken = int((search.policy_set.refinements[owner] > 0).sum())
         self.refine_trials += woken
         self.barren_refine_trials += woken
@@ -188,7 +194,7 @@ class Waking(NoWaking):
 
     def wake(self, search: PolicySearch) -> None:
         """With no policy active: wake retired policies as the class docstring says."""
-        if bool(search.active.any()) or search.num_policies == 0:
+        if search.policy_set.any_active() or search.num_policies == 0:
             return
         policies = search.policy_set
         if self.converged_at < 0:
@@ -260,23 +266,28 @@ class Retirement:
         self.restarts = bool(restart_straddlers)
         wakes = self.retire_std > 0 and refine > 0
         self.waking = Waking(refine, refine_share) if wakes else NoWaking()
-        self._in_valley: Tensor | None = None  # within one tell: see observe
+        self._in_valley: tuple[bool, ...] | None = None  # within one tell: see observe
 
     def register(self, search: PolicySearch) -> None:
         self.waking.register(search)
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
-        """Which policies' latest sample was worse than every one they keep (``[K]``),
-        judged before the samples are archived; the waking's trial counts."""
+        """Which policies' latest sample was worse than every one they keep (K flags, on
+        the host: ``restart_straddlers`` of this tell branches on them), judged before the
+        samples are archived; the waking's trial counts."""
         self._in_valley = None
         self.waking.observe(search, batch)
         if not (self.restarts and search.started):
             return
-        rows = batch.owner >= 0
-        policy = batch.owner[rows]
-        worst = search.archive.per_policy("amin", search.num_policies)
-        self._in_valley = torch.zeros(search.num_policies, dtype=torch.bool, device=search.device)
-        self._in_valley[policy] = batch.rewards[rows] < worst[policy]
+        k, n = search.num_policies, batch.policy_rows
+        worst = search.archive.per_policy("amin", k)
+        if not batch.every_policy(k):  # (else one sample of each policy, in order)
+            worst = worst[batch.owner[:n]]
+        worse = (batch.rewards[:n] < worst).tolist()
+        in_valley = [False] * k
+        for policy, flag in zip(batch.policies, worse, strict=True):
+            in_valley[policy] = flag
+        self._in_valley = tuple(in_valley)
 
     def forget(self) -> None:
         """The world changed: nothing judged on the old world's returns is kept."""
@@ -287,7 +298,11 @@ class Retirement:
         """``[K]`` whether each policy's exploration std is below its threshold times
         Σ_start's (``retire_std``, lowered by each wake; never with ``retire_std = 0``, but
         for a covariance lost to rounding, NaN, which must not be sampled)."""
-        return ~(search.relative_std() >= self.waking.thresholds(search, self.retire_std))
+        return ~self._exploring(search)
+
+    def _exploring(self, search: PolicySearch) -> Tensor:
+        """``[K]`` not ``converged``: the std at or above its threshold (NaN is not)."""
+        return search.relative_std() >= self.waking.thresholds(search, self.retire_std)
 
     def refining(self, search: PolicySearch) -> Tensor:
         """``[K]`` the policies woken to refine: clusterings leave their samples out, as
@@ -325,17 +340,24 @@ class Retirement:
         condition spares a policy on a plateau: its exploration shrinks below its kept
         samples' spread too, but its samples tie with the kept ones."""
         in_valley, self._in_valley = self._in_valley, None
-        if in_valley is None or not bool((in_valley & search.active).any()):
-            return  # the usual case: no factorisation needed
+        if in_valley is None:
+            return
         archive, policies = search.archive, search.policy_set
+        active = policies.active_flags()
+        candidates = [j for j, flag in enumerate(in_valley) if flag and active[j]]
+        if not candidates:
+            return  # the usual case: no factorisation needed
         best = archive.best_samples(policies.means)
         distance = exploration_distance(search, (best - policies.means)[:, None, :])[:, 0]
+        distance = distance.tolist()
         limit = 3.0 + math.sqrt(search.dim)
         # (A covariance that lost definiteness, distance inf, restarts nothing.)
-        straddling = policies.active & in_valley & distance.isfinite() & (distance > limit)
-        if not bool(straddling.any()):
+        straddling = [j for j in candidates if math.isfinite(distance[j]) and distance[j] > limit]
+        if not straddling:
             return
-        for j in straddling.nonzero().squeeze(-1).tolist():
+        # Written row by row into copies: a tell's snapshot holds the tensors themselves.
+        policies.means, policies.covariances = policies.means.clone(), policies.covariances.clone()
+        for j in straddling:
             own = (archive.owner == j).nonzero().squeeze(-1)
             centre = best[j]
             diff = archive.thetas[own] - centre
@@ -355,37 +377,42 @@ class Retirement:
         """Retire the converged policies, then drop duplicates (see the module docstring)."""
         policies = search.policy_set
         if self.retire_std > 0:
-            policies.active = policies.active & ~self.converged(search)
+            policies.active = policies.active & self._exploring(search)
         if self.merge_radius <= 0 or search.num_policies < 2:
             return
         # Mahalanobis distance of policy b's mean under policy a's exploration: [K, K]
         # (inf: a's covariance lost definiteness in float64 and judges no duplicates).
         diff = policies.means[None, :, :] - policies.means[:, None, :]
-        near = exploration_distance(search, diff) < self.merge_radius
-        near.fill_diagonal_(False)
-        # A policy whose exploration covers two or more others is judged by none of them:
-        # exploring that widely (a new policy), it may well be on a hill of its own, which
-        # only a hill-valley probe can tell.
-        judged = near.sum(-1) == 1
-        best = search.policy_best_rewards
-        active = policies.active
-        drop = torch.zeros(search.num_policies, dtype=torch.bool, device=search.device)
-        for a in (active & judged).nonzero().squeeze(-1).tolist():
-            for b in range(search.num_policies):
+        # The pairwise decisions below run on the host: K is a handful of policies.
+        near = (exploration_distance(search, diff) < self.merge_radius).tolist()
+        k = len(near)
+        for a in range(k):
+            near[a][a] = False
+        best = search.policy_best_rewards.tolist()
+        active = policies.active_flags()
+        drop = [False] * k
+        for a in range(k):
+            # A policy whose exploration covers two or more others is judged by none of
+            # them: exploring that widely (a new policy), it may well be on a hill of its
+            # own, which only a hill-valley probe can tell.
+            if not active[a] or sum(near[a]) != 1:
+                continue
+            for b in range(k):
                 if a == b or drop[b] or drop[a]:
                     continue
                 if not active[b]:
-                    duplicate = bool(near[a, b])  # a explores a retired optimum...
+                    duplicate = near[a][b]  # a explores a retired optimum...
                     if duplicate and best[a] > best[b]:
                         drop[b] = True  # ...which stopped short of the top: a goes on
                         continue
                 else:
-                    duplicate = bool(near[a, b] and near[b, a])
+                    duplicate = near[a][b] and near[b][a]
                     # Of two active duplicates the worse one goes.
                     if duplicate and best[a] > best[b]:
                         drop[b] = True
                         continue
                 if duplicate:
                     drop[a] = True
-        if drop.any():
-            search.remove_policies(drop.nonzero().squeeze(-1))
+        if any(drop):
+            dropped = [j for j in range(k) if drop[j]]
+            search.remove_policies(torch.tensor(dropped, dtype=torch.long, device=search.device))

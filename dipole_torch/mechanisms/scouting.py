@@ -54,7 +54,7 @@ class Scouting:
         """``[K_sampled]`` the active policies that draw a sample at the next ask: all of
         them, or the ``max_sampled`` with the best kept returns (ties: the lower index)."""
         index = search.active.nonzero().squeeze(-1)
-        if self.max_sampled is None or index.numel() <= self.max_sampled:
+        if self.max_sampled is None or sum(search.policy_set.active_flags()) <= self.max_sampled:
             return index
         best = search.policy_best_rewards[index]
         ahead = torch.argsort(best, descending=True, stable=True)[: self.max_sampled]
@@ -64,7 +64,7 @@ class Scouting:
         """Scouts in the next ask, whose ``sampled`` policies draw a sample each: ``explore``
         per policy sample on average (the running count of policy samples decides, so the
         fraction holds over the run); a fresh ``n0`` when no policy is active."""
-        if not bool(search.active.any()):
+        if not search.policy_set.any_active():
             return search.n0
         before = search.policy_samples
         return math.floor(self.explore * (before + sampled)) - math.floor(self.explore * before)
@@ -77,7 +77,7 @@ class Scouting:
         if (
             self.restarts == "box"
             and box is not None
-            and not bool(search.active.any())
+            and not search.policy_set.any_active()
             and bool(torch.isfinite(box[0]).all() & torch.isfinite(box[1]).all())
         ):
             lower, upper = box
