@@ -28,6 +28,12 @@ if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is bui
 
 __all__ = ["Dipole"]
 
+# auxiliary="auto" re-uses auxiliary draws from this dimension p = D + 1 of [θ, r] on, where
+# Algorithm 8's N·m inverse-Wishart draws of p × p are most of a clustering. Below it, fresh
+# draws: m new proposals at every point open new components (new policies) in fewer sweeps
+# than m slots shared by all points (measured on the viapoint routes, docs Speed).
+REUSE_AUXILIARY_DIM = 32
+
 # A clustering that meets these is skipped: a factorisation of a numerically singular
 # covariance, or a label whose every probability underflowed to 0.
 NUMERICAL_FAILURES = (torch.linalg.LinAlgError, FloatingPointError)
@@ -109,11 +115,10 @@ class Dipole(PolicySearch):
             raise ValueError(
                 f"auxiliary='reuse' runs on the CPU only; on {self.device} use 'fresh' or 'auto'"
             )
-        # "auto": Favaro & Teh's re-used draws on the CPU (m + N draws a sweep instead of
-        # N·m, every score in one table: the cheaper exact sampler there); Algorithm 8's fresh
-        # draws elsewhere (the branch-free pass of a device).
         reuse = options.auxiliary == "reuse" or (
-            options.auxiliary == "auto" and self.device.type == "cpu"
+            options.auxiliary == "auto"
+            and d + 1 >= REUSE_AUXILIARY_DIM
+            and self.device.type == "cpu"
         )
         self.auxiliary = "reuse" if reuse else "fresh"
         # The mechanisms, one object each ("off" is an object too).

@@ -85,7 +85,7 @@ class DipoleOptions:
             time every policy retired, in (0, 1); restarts (scouts) take the rest.
         merge_radius: drop a policy within this many exploration stds of another (0: never).
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
-            draws, exact too, CPU), or "auto" (reuse on the CPU, fresh on other devices).
+            draws, exact too, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
     """
 
     alpha: float = 1.0

@@ -208,27 +208,28 @@ def test_a_policy_converges_on_a_smooth_bump_in_10d():
     assert float(opt.policy_covariances.diagonal(dim1=-2, dim2=-1).max()) < 1e-2 * 4
 
 
-def test_auxiliary_draws_auto_reuse_them_on_the_cpu(monkeypatch):
-    """auxiliary="auto" re-uses the auxiliary draws on the CPU (the cheaper exact sampler
-    there), never in the paper's variant, and the clusterings get it."""
+def test_auxiliary_draws_auto_reuse_them_in_high_dimension_only(monkeypatch):
+    """auxiliary="auto" re-uses the auxiliary draws once p = D + 1 >= 32 (where they are
+    most of a sweep's cost), never in the paper's variant, and the clusterings get it."""
 
     def build(d, **kwargs):
         return Dipole(torch.zeros(d, dtype=F64), torch.eye(d, dtype=F64), **kwargs)
 
-    assert build(2).auxiliary == "reuse" and build(31).auxiliary == "reuse"
+    assert build(30).auxiliary == "fresh" and build(31).auxiliary == "reuse"
+    assert build(2, auxiliary="reuse").auxiliary == "reuse"
     assert build(40, auxiliary="fresh").auxiliary == "fresh"
     assert Dipole.paper(torch.zeros(40, dtype=F64), torch.eye(40, dtype=F64)).auxiliary == "fresh"
     asked = []
     original = DPSampler.fit
 
     def recording(self, *args, **kwargs):
-        asked.append(self.auxiliary)
+        asked.append(self.auxiliary == "reuse")
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(DPSampler, "fit", recording)
-    for options, expected in (({}, "reuse"), ({"auxiliary": "fresh"}, "fresh")):
+    for d, expected in ((2, False), (31, True)):
         asked.clear()
-        learn(build(2, generator=torch.Generator().manual_seed(0), **options), two_optima, 40)
+        learn(build(d, generator=torch.Generator().manual_seed(0)), two_optima, 40)
         assert asked and set(asked) == {expected}
 
 
