@@ -9,6 +9,7 @@ from torch import Tensor
 from torch.distributions import MultivariateNormal
 
 from dipole_torch.gaussian import DTYPE, symmetric
+from dipole_torch.memo import Memo
 from dipole_torch.sampling import _to, bartlett_factor, inverse_wishart, inverse_wishart_from_factor
 from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
 
@@ -217,22 +218,17 @@ class NormalInverseWishartPrior:
         )
         return prior
 
-    # The factorisations below are memoised on the prior: a sweep needs each several times
-    # (H's draws, the μ step, H's update), the initial prior's at every sweep of a run.
-    # Reusing a factor is exact (the same call on the same matrix); a memo is recomputed
-    # when its field is replaced or modified in place (identity and version checks).
+    # The factorisations below are memoised on the prior (``dipole_torch.memo.Memo``): a
+    # sweep needs each several times (H's draws, the μ step, H's update), the initial prior's
+    # at every sweep of a run. Reusing a factor is exact (the same call on the same matrix); a
+    # memo is recomputed when its field is replaced or modified in place.
     def _memo(self, name: str, field: str, compute) -> Tensor:
         """``compute(self.<field>)``, memoised while that field is the same unmodified tensor."""
+        memo = self.__dict__.get("_memos")
+        if memo is None:  # (priors built by ``updated`` skip __init__)
+            memo = self.__dict__["_memos"] = Memo()
         source = getattr(self, field)
-        if source.is_inference():  # no version counter to check: not memoised
-            return compute(source)
-        memo = self.__dict__.setdefault("_memos", {})
-        hit = memo.get(name)
-        if hit is not None and hit[0] is source and hit[1] == source._version:
-            return hit[2]
-        value = compute(source)
-        memo[name] = (source, source._version, value)
-        return value
+        return memo.get(name, (source,), lambda: compute(source))
 
     def _mean_tril(self) -> Tensor:
         """``[D, D]`` Cholesky factor of Σ0 (memoised; not to be modified)."""
