@@ -17,6 +17,8 @@ sampler (eq. 5): eq. 6's reward weighting has no generative model of this form.
 
 import pytest
 import torch
+from test_pyro_model import _geweke_z
+from test_pyro_model import _test_functions as model_test_functions
 
 from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
 
@@ -65,23 +67,9 @@ def forward(num_draws, seed):
 
 
 def _test_functions(labels, point_means, point_covs, y, mu_h, sigma_h, psi_h):
-    num_tables = labels.max(-1).values + 1
-    return torch.stack(
-        [
-            num_tables.to(F64),
-            (labels[:, 0] == labels[:, 1]).to(F64),
-            point_means[:, 0],
-            point_means[:, 0] ** 2,
-            point_covs[:, 0].log(),
-            y[:, 0],
-            y[:, 0] ** 2,
-            y[:, 0] * y[:, 1],
-            mu_h,
-            sigma_h.log(),
-            psi_h.log(),
-        ],
-        -1,
-    )
+    """``[B, 11]`` the Pyro model test's eight functions of (θ, y), then μ0, log Σ0, log Ψ0."""
+    hyper = torch.stack([mu_h, sigma_h.log(), psi_h.log()], -1)
+    return torch.cat((model_test_functions(labels, point_means, point_covs, y), hyper), -1)
 
 
 def chain(num_steps, seed, auxiliary):
@@ -112,13 +100,6 @@ def chain(num_steps, seed, auxiliary):
     return _test_functions(*columns)[50:]  # a burn-in from the arbitrary start
 
 
-def geweke_z(forward_draws, chain_draws, batches=20):
-    chain_draws = chain_draws[: chain_draws.shape[0] // batches * batches]
-    batch_means = chain_draws.reshape(batches, -1, chain_draws.shape[-1]).mean(1)
-    variance = forward_draws.var(0) / forward_draws.shape[0] + batch_means.var(0) / batches
-    return (forward_draws.mean(0) - batch_means.mean(0)) / variance.sqrt()
-
-
 @pytest.fixture(scope="module")
 def forward_draws():
     return forward(40000, seed=0)
@@ -126,7 +107,7 @@ def forward_draws():
 
 @pytest.mark.parametrize("auxiliary", ["fresh", "reuse"])
 def test_geweke_sweep_with_the_prior_update_samples_the_model(forward_draws, auxiliary):
-    z = geweke_z(forward_draws, chain(2050, seed=1, auxiliary=auxiliary))
+    z = _geweke_z(forward_draws, chain(2050, seed=1, auxiliary=auxiliary))
     assert z.abs().max() < Z_LIMIT, f"Geweke z-scores {z.tolist()}"
 
 
@@ -141,5 +122,5 @@ def test_geweke_detects_a_broken_prior_update(forward_draws, monkeypatch):
         return new
 
     monkeypatch.setattr(NormalInverseWishartPrior, "updated", broken)
-    z = geweke_z(forward_draws, chain(2050, seed=1, auxiliary="reuse"))
+    z = _geweke_z(forward_draws, chain(2050, seed=1, auxiliary="reuse"))
     assert z[8].abs() > Z_LIMIT, f"Geweke z-scores {z.tolist()}"

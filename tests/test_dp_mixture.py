@@ -364,12 +364,10 @@ def test_sync_free_label_pass_makes_the_numpy_pass_draws(weighted, monkeypatch):
     torch.testing.assert_close(a.covariances, b.covariances)
 
 
-def test_auxiliary_draws_are_chunked(monkeypatch):
-    # At N = 1e4, p = 51, m = 10 all auxiliary covariances at once took 2.1 GB; a chunk's
-    # covariances and their Cholesky factors stay within 64 MB.
-    chunk = neal8.chunk_size(10_000, 10, 51)
-    assert 2 * chunk * 10 * 51 * 51 * 8 <= 2**26 and chunk >= 100
-    y, state = label_pass_inputs(8 * 2 * 8 * 10 * 9, monkeypatch)
+@pytest.fixture
+def prior_draw_sizes(monkeypatch):
+    """The sizes of H's draws (``NormalInverseWishartPrior.sample``) made after the
+    fixture is set up, in order."""
     sizes = []
     original = NormalInverseWishartPrior.sample
 
@@ -378,8 +376,17 @@ def test_auxiliary_draws_are_chunked(monkeypatch):
         return original(self, n, *args, **kwargs)
 
     monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
+    return sizes
+
+
+def test_auxiliary_draws_are_chunked(monkeypatch, prior_draw_sizes):
+    # At N = 1e4, p = 51, m = 10 all auxiliary covariances at once took 2.1 GB; a chunk's
+    # covariances and their Cholesky factors stay within 64 MB.
+    chunk = neal8.chunk_size(10_000, 10, 51)
+    assert 2 * chunk * 10 * 51 * 51 * 8 <= 2**26 and chunk >= 100
+    y, state = label_pass_inputs(8 * 2 * 8 * 10 * 9, monkeypatch)
     DPSampler(state.prior, update_prior=False).sweep(y, state, torch.Generator().manual_seed(0))
-    assert sizes == [80] * 7 + [40]  # 8 points · m = 10 per chunk, 60 points
+    assert prior_draw_sizes == [80] * 7 + [40]  # 8 points · m = 10 per chunk, 60 points
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -414,49 +421,36 @@ def test_cuda_label_loop_never_syncs_within_a_chunk(monkeypatch):
     assert out.labels.device.type == "cuda" and int(out.counts.sum()) == 60
 
 
-def test_reuse_draws_m_plus_n_auxiliary_components_a_sweep_and_recovers_clusters(monkeypatch):
+def test_reuse_draws_m_plus_n_auxiliary_components_a_sweep_and_recovers_clusters(
+    prior_draw_sizes,
+):
     # Favaro & Teh's re-use: m draws from H, plus one per slot taken (a component opened or a
     # singleton re-formed), at most N, instead of N·m; drawn ahead as one pool. Its
     # exactness is checked against the enumerated posterior in tests/test_dp_exact.py.
-    sizes = []
-    original = NormalInverseWishartPrior.sample
-
-    def spy(self, n, *args, **kwargs):
-        sizes.append(n)
-        return original(self, n, *args, **kwargs)
-
     g = torch.Generator().manual_seed(2)
     true = torch.arange(3).repeat_interleave(80)
     y = separated_centres(3, 2, g)[true] + torch.randn(240, 2, generator=g, dtype=F64)
     prior = clustering_prior(y)
     state = DPMixtureState.single_component(y, prior)
-    monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
     reuse = DPSampler(prior, update_prior=False, auxiliary="reuse")
     state = reuse.sweep(y, state, g)
-    assert sizes == [10 + 240]
+    assert prior_draw_sizes == [10 + 240]
     state = reuse.fit(y, 15, generator=g, init="sequential")
     assert int((state.counts >= 0.05 * len(y)).sum()) == 3
     assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.95
 
 
-def test_reuse_pool_grows_in_blocks_for_large_data(monkeypatch):
+def test_reuse_pool_grows_in_blocks_for_large_data(monkeypatch, prior_draw_sizes):
     # Beyond POOL_BLOCK points, refills come in blocks as slots are taken, each scored at
     # the points still to come; the pass opens components across blocks as before.
     monkeypatch.setattr(dp_reuse, "POOL_BLOCK", 1)
-    sizes = []
-    original = NormalInverseWishartPrior.sample
-
-    def spy(self, n, *args, **kwargs):
-        sizes.append(n)
-        return original(self, n, *args, **kwargs)
-
     g = torch.Generator().manual_seed(2)
     true = torch.arange(3).repeat_interleave(20)
     y = separated_centres(3, 2, g)[true] + torch.randn(60, 2, generator=g, dtype=F64)
     prior = clustering_prior(y)
-    monkeypatch.setattr(NormalInverseWishartPrior, "sample", spy)
     sampler = DPSampler(prior, update_prior=False, auxiliary="reuse")
     state = sampler.fit(y, 15, generator=g, init="single")
+    sizes = prior_draw_sizes
     assert sizes[0] == 10 + 1 and len(sizes) > 15 and set(sizes[1:]) <= {1, 11}
     assert int((state.counts >= 5).sum()) == 3
     assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.9  # (+ stray singletons)
