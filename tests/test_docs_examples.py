@@ -334,12 +334,15 @@ def switch_rows() -> list[str]:
     def returns(algo) -> str:
         return f"{algo['final_executed'][0]:.3f} / {algo['final_best_policy_mean'][0]:.3f}"
 
-    assert within_k(dipole, k) == runs and fraction(data["dipole_switch_success"]) == "10 / 10"
+    # The claim: every run that knew ≥ 2 routes before the block is back within its K trials.
+    known = data["dipole_runs_with_two_or_more_routes"]
+    assert fraction(data["dipole_switch_success"]) == f"{known} / {known}"
+    assert within_k(dipole, k) >= known
     return [
         f"| runs with ≥ 2 routes before the block | "
         f"{data['dipole_runs_with_two_or_more_routes']} / {runs} | — (one policy) | — |",
         f"| back at return ≥ {data['threshold']} within K trials (no relearning) | "
-        f"{fraction(data['dipole_switch_success'])} (K = {min(k)}–{max(k)}) | "
+        f"{within_k(dipole, k)} / {runs} (K = {min(k)}–{max(k)}) | "
         f"{within_k(power, [1] * runs)} / {runs} | — |",
         f"| trials to {data['threshold']}, executed policy (`best()`) | "
         + " | ".join(

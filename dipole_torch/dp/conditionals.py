@@ -106,7 +106,9 @@ def mean_location(prior: NormalInverseWishartPrior, half: Tensor, chol: Tensor) 
     return prior.mean_loc + torch.linalg.solve_triangular(chol.mT, half, upper=True).squeeze(-1)
 
 
-def draw_mean(prior: NormalInverseWishartPrior, half: Tensor, chol: Tensor, normals: Tensor):
+def draw_mean(
+    prior: NormalInverseWishartPrior, half: Tensor, chol: Tensor, normals: Tensor
+) -> Tensor:
     """``[K, D]`` μ ~ N(μ0 + L⁻ᵀ half, P⁻¹) from ``mean_conditional``'s pair and standard
     ``normals: [K, D]``: μ0 + L⁻ᵀ (half + z), whose covariance is L⁻ᵀ L⁻¹ = P⁻¹."""
     return mean_location(prior, half + normals[:, :, None], chol)
