@@ -326,7 +326,7 @@ def switch_rows() -> list[str]:
     def trials(algo, key: str, dipole_like: bool) -> str:
         mean, std, median = algo[f"{key}_mean_std_median"]
         if dipole_like:
-            return f"{mean:.1f} ± {std:.1f} (all {runs})"
+            return f"{mean:.1f} ± {std:.1f}, median {median:g} (all {runs})"
         reached = fraction(algo[f"{key}_reached"])
         limit = f" within {after}" if not reached.startswith(f"{runs} ") else ""
         return f"{round(mean)} ± {round(std)}, median {round(median)} ({reached}{limit})"
