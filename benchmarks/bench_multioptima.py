@@ -715,6 +715,33 @@ def write_report(path: Path, config: dict, wall: float, summary: dict, cases: li
     print(f"wrote {path}")
 
 
+def add_keep_others(parser: argparse.ArgumentParser) -> None:
+    """The ``--keep-others`` flag (see ``run_keeping_others``)."""
+    parser.add_argument(
+        "--keep-others", action="store_true",
+        help="keep the other methods' cases from --json instead of running them",
+    )  # fmt: skip
+
+
+def run_keeping_others(
+    task: Callable[[tuple], dict],
+    tasks: list[tuple],
+    args: argparse.Namespace,
+    grid: dict,
+    methods: Sequence[str],
+    order: Sequence[str],
+    progress: Callable[[int, int, dict], str],
+) -> tuple[list[dict], float, list[str]]:
+    """``run_tasks``, completed with ``--keep-others`` by the other methods' cases of
+    ``args.json`` (``kept_cases``, on the keys of ``grid``). Returns the cases, the wall
+    seconds and every method among them, in the order of ``order``."""
+    kept = kept_cases(args.json, grid, methods, list(grid)) if args.keep_others else []
+    cases, wall = run_tasks(task, tasks, args.workers, progress)
+    cases += kept
+    rank = {m: i for i, m in enumerate(order)}
+    return cases, wall, sorted({c["method"] for c in cases} | set(methods), key=rank.__getitem__)
+
+
 def kept_cases(path: Path, config: dict, methods: Sequence[str], same: Sequence[str]) -> list:
     """The cases of ``path``'s report for every method not in ``methods``, for
     ``--keep-others``: a run of some methods (DIPOLE's, after a change to it) completed by the
@@ -747,10 +774,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "multioptima.json")
-    parser.add_argument(
-        "--keep-others", action="store_true",
-        help="keep the other methods' cases from --json instead of running them",
-    )  # fmt: skip
+    add_keep_others(parser)
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS + OPT_IN if m in args.methods]
@@ -769,11 +793,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         key=lambda t: (cost.get(t[3], 4), -t[0], -t[1]),
     )
     grid = {"dims": args.dims, "ks": args.ks, "seeds": args.seeds, "budgets": budgets}
-    kept = kept_cases(args.json, grid, methods, list(grid)) if args.keep_others else []
-    cases, wall = run_tasks(_task, tasks, args.workers, _progress)
-    cases += kept
+    cases, wall, methods = run_keeping_others(
+        _task, tasks, args, grid, methods, METHODS + OPT_IN, _progress
+    )
     order = {m: i for i, m in enumerate(METHODS + OPT_IN)}
-    methods = sorted({c["method"] for c in cases} | set(methods), key=order.__getitem__)
     cases.sort(key=lambda c: (order[c["method"]], c["dim"], c["k"], c["seed"]))
     text, summary = summarize(cases, methods, args.dims, args.ks, budgets)
     print(text)

@@ -320,10 +320,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "niching.json")
-    parser.add_argument(
-        "--keep-others", action="store_true",
-        help="keep the other methods' cases from --json instead of running them",
-    )  # fmt: skip
+    peers.add_keep_others(parser)
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS + peers.OPT_IN if m in args.methods]
@@ -334,11 +331,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     # DIPOLE first (the slowest), so the processes finish together.
     tasks = [(n, s, m, budgets) for m in methods for n in numbers for s in range(args.seeds)]
     grid = {"functions": numbers, "seeds": args.seeds, "budgets": budgets}
-    kept = peers.kept_cases(args.json, grid, methods, list(grid)) if args.keep_others else []
-    cases, wall = peers.run_tasks(_task, tasks, args.workers, _progress)
-    cases += kept
+    cases, wall, methods = peers.run_keeping_others(
+        _task, tasks, args, grid, methods, METHODS + peers.OPT_IN, _progress
+    )
     order = {m: i for i, m in enumerate(METHODS + peers.OPT_IN)}
-    methods = sorted({c["method"] for c in cases} | set(methods), key=order.__getitem__)
     cases.sort(key=lambda c: (order[c["method"]], c["function"], c["seed"]))
     text, summary = summarize(cases, methods, numbers, budgets)
     print(text)
