@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from dipole_torch.archive import PROBE
-from dipole_torch.dp.conditionals import posterior_point_estimate
+from dipole_torch.dp.conditionals import check_estimate, posterior_point_estimate
 from dipole_torch.dp.sampler import DPSampler
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
@@ -236,7 +236,8 @@ class Dipole(PolicySearch):
         warm start ends early once its partition settles (``settle``)."""
         settle = None if start is None else self.options.settle
         state = self.sampler.fit(y, sweeps, self.generator, start, settle=settle)
-        return posterior_point_estimate(y, state)
+        spread = self.sampler.prior.mean_covariance.diagonal().sqrt()
+        return check_estimate(y, posterior_point_estimate(y, state), spread)
 
     def _after_initial_batch(self) -> None:
         """Build H from the exploration distribution, cluster the n0 samples (from one

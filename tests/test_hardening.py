@@ -145,6 +145,28 @@ def test_returns_far_beyond_the_first_batchs_scale_draw_no_label_from_nan():
     assert finite_policies(opt)
 
 
+def test_returns_a_hundred_orders_beyond_the_first_batchs_adopt_no_absurd_policy():
+    # Found by test_properties: returns of 1e9, then one of 4.6e148 beside parameters in
+    # [-1, 1]. The clustering's covariances are then too ill-conditioned for float64 and its
+    # estimate put a policy at 1e124 (inf once asked in float32): it must be skipped.
+    theta0, g = torch.zeros(1, dtype=torch.float32), torch.Generator().manual_seed(185)
+    opt = Dipole.paper(theta0, 0.8, generator=g)
+
+    def bowl(t: Tensor) -> Tensor:
+        return 1.5 + (1.0 - 0.5 * (t.to(F64) - 1.0).pow(2).sum(-1)).clamp(-1.0, 1.0)
+
+    for scale in [1e9, 1.0, None, 1.0, 1e-9, 1e-9]:
+        theta = opt.ask()
+        if scale is None:
+            opt.tell(theta, torch.tensor([4.622887283965605e148, 2.926049471361045e15], dtype=F64))
+        else:
+            opt.tell(theta, scale * bowl(theta))
+        assert finite_policies(opt)
+        assert float(opt.policy_means.abs().max()) < 10.0
+    assert opt.clusterings_skipped >= 1
+    assert bool(opt.ask().isfinite().all())
+
+
 # ---------------------------------------------------------------------- the largest floats
 @pytest.mark.parametrize("kind", ["dipole", "power"])
 def test_returns_of_plus_minus_1_5e308_are_told_and_learning_goes_on(kind):

@@ -36,6 +36,7 @@ if TYPE_CHECKING:
 __all__ = [
     "Covariances",
     "ParameterDraws",
+    "check_estimate",
     "covariance_step",
     "data_mean",
     "draw_mean",
@@ -317,3 +318,44 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
     precisions = torch.cholesky_inverse(torch.linalg.cholesky(covs))
     means = mean_location(prior, *mean_conditional(prior, precisions, counts, residuals))
     return replace(state, means=means, covariances=covs)
+
+
+# How far beyond the data (in multiples of its width plus a reference spread) a component's
+# mean may lie, or how wide a covariance may be, before it is taken for rounding garbage. The
+# exact posterior mean is a matrix-weighted average of the data and μ0, which H's update keeps
+# near the data: legitimate values stay within a few widths.
+ESTIMATE_REACH = 1e6
+
+
+def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtureState:
+    """``state`` if its parameters and H are sound for ``y``; else ``FloatingPointError``.
+
+    Data whose coordinates differ in scale by a hundred orders of magnitude (a return of
+    1e148 beside parameters of order one) make the covariances too ill-conditioned for
+    float64: their factorisation then yields NaN, or values that are finite but absurd
+    (H's mean covariance 1e247 and a component mean 1e124 for parameters in [-1, 1]).
+    Both are refused here, so that a caller can skip the clustering instead of adopting
+    them.
+
+    Args:
+        y: ``[N, D]`` the data the state was fitted to.
+        state: means ``[K, D]``, covariances ``[K, D, D]`` and H.
+        spread: ``[D]`` a reference standard deviation per coordinate (the initial H's),
+            which sets the reach where the data have no width.
+    """
+    y = y.to(state.means.dtype)
+    prior = state.prior
+    low, high = y.amin(0), y.amax(0)
+    reach = ESTIMATE_REACH * (high - low + spread)
+    locations = torch.cat((state.means, prior.mean_loc[None]))  # [K + 1, D]
+    stds = torch.cat(
+        (state.covariances.diagonal(dim1=-2, dim2=-1), prior.mean_covariance.diagonal()[None])
+    ).sqrt()
+    # NaN fails every comparison: it counts as not inside. One host sync for all.
+    inside = (locations >= low - reach) & (locations <= high + reach) & (stds <= reach)
+    if not bool(inside.all()):
+        raise FloatingPointError(
+            "the DP mixture's estimate is not sound (non-finite, or far outside the data): "
+            "the data's coordinates differ in scale beyond what float64 factorises"
+        )
+    return state
