@@ -57,7 +57,8 @@ class DipoleOptions:
         cluster_every: iterations between DP clusterings (paper: "every M steps"); None: M.
         sweeps: Gibbs sweeps per clustering, warm-started.
         settle: end a warm-started clustering early, once this many sweeps in a row left
-            the partition unchanged (None: always ``sweeps``); see ``DPSampler.fit``.
+            the partition unchanged (None: always ``sweeps``; paper: None); see
+            ``DPSampler.fit``.
         initial_sweeps: Gibbs sweeps of the first clustering (from one component).
         reward_range: None (the kept returns' min–max, any units), (low, high) (a fixed map)
             or "positive" (positive returns used as weights); see dipole_torch.RewardScale.
@@ -94,7 +95,7 @@ class DipoleOptions:
     n0: int | None = None
     cluster_every: int | None = None
     sweeps: int = 5
-    settle: int | None = None
+    settle: int | None = 1
     initial_sweeps: int = 20
     reward_range: RewardRange = None
     reward_floor: float = 1e-3
@@ -158,6 +159,7 @@ PAPER: dict[str, Any] = dict(
     hill_valley=False,
     auxiliary="fresh",
     reward_range="positive",
+    settle=None,
 )
 
 
