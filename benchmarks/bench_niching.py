@@ -206,7 +206,7 @@ def run_random_search(
 
 RUNNERS: dict[str, Callable[[NichingFunction, Sequence[int], int], peers.Snapshots]] = {
     "DIPOLE": peers.run_dipole,
-    "DIPOLE (settle)": peers.run_dipole_settle,
+    "DIPOLE (all sweeps)": peers.run_dipole_all_sweeps,
     "IPOP-CMA-ES": peers.run_ipop_cmaes,
     "NMMSO": peers.run_nmmso,
     "random search": run_random_search,

@@ -62,9 +62,11 @@ def capture(d: int, trials: int, seed: int = 1) -> tuple[list[dict], object]:
     fit = opt._fit
 
     def recording_fit(y, sweeps, start=None, *args, **kwargs):
+        # As Dipole._fit does: a warm start ends once its partition settles.
+        settle = None if start is None else opt.options.settle
         captured.append(
-            dict(y=y.clone(), sweeps=sweeps, start=start, args=args, kwargs=kwargs,
-                 generator=opt.generator.get_state())
+            dict(y=y.clone(), sweeps=sweeps, start=start, args=args,
+                 kwargs=kwargs | {"settle": settle}, generator=opt.generator.get_state())
         )  # fmt: skip
         return fit(y, sweeps, start, *args, **kwargs)
 

@@ -79,7 +79,8 @@ def main() -> None:
     methods = [m for m in METHODS + OPT_IN if m in args.methods]
     for method in methods:  # first-call costs out of the table
         optimizer_cpu(method, 2, 2, 0, 60)
-    header = f"{'D':>3} {'method':<15} {'CPU s':>8} {'trials':>7} {'µs/trial':>9}"
+    width = max(len("method"), *map(len, methods))
+    header = f"{'D':>3} {'method':<{width}} {'CPU s':>8} {'trials':>7} {'µs/trial':>9}"
     header += "".join(f" {'/' + anchor:>13}" for anchor in ANCHORS if anchor in methods)
     print(f"optimizer CPU (evaluations excluded), {args.trials} trials a run, "
           f"k in {args.ks}, {args.seeds} seeds")  # fmt: skip
@@ -96,7 +97,7 @@ def main() -> None:
                     used[method] += trials
         for method in methods:
             line = (
-                f"{dim:>3} {method:<15} {seconds[method]:>8.2f} {used[method]:>7} "
+                f"{dim:>3} {method:<{width}} {seconds[method]:>8.2f} {used[method]:>7} "
                 f"{1e6 * seconds[method] / max(used[method], 1):>9.0f}"
             )
             for anchor in ANCHORS:
