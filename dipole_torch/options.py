@@ -47,6 +47,9 @@ class DipoleOptions:
                            once none is active
     ``merge_radius``       1: drop duplicate policies      0 (never)
     ``auxiliary``          ``"auto"``                      ``"fresh"`` (Algorithm 8)
+    ``settle``             1: a warm-started clustering    ``None``: every clustering runs
+                           ends once a sweep leaves its    its ``sweeps``
+                           partition unchanged
     =====================  ==============================  ===================================
 
     Attributes:
