@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor
 
-from dipole_torch.sampling import _expand, _to
+from dipole_torch.sampling import _expand
 
 DTYPE = torch.float64
 LOG_2PI = math.log(2.0 * math.pi)
@@ -22,10 +22,8 @@ LOG_2PI = math.log(2.0 * math.pi)
 __all__ = [
     "DTYPE",
     "LOG_2PI",
-    "draw_normal_precision",
     "gaussian_log_prob",
     "log_prob_tril",
-    "spd_inverse",
     "symmetric",
 ]
 
@@ -33,12 +31,6 @@ __all__ = [
 def symmetric(matrix: Tensor) -> Tensor:
     """``[..., D, D]`` ½ (A + Aᵀ): removes the rounding asymmetry of products and inverses."""
     return 0.5 * (matrix + matrix.transpose(-1, -2))
-
-
-def spd_inverse(matrix: Tensor) -> Tensor:
-    """``[..., D, D]`` inverse of symmetric positive-definite ``matrix`` via its Cholesky
-    factor, symmetrised."""
-    return symmetric(torch.cholesky_inverse(torch.linalg.cholesky(matrix)))
 
 
 def log_prob_tril(value: Tensor, mean: Tensor | float, tril: Tensor) -> Tensor:
@@ -72,20 +64,3 @@ def log_prob_tril(value: Tensor, mean: Tensor | float, tril: Tensor) -> Tensor:
 def gaussian_log_prob(value: Tensor, means: Tensor, covariances: Tensor) -> Tensor:
     """``[...]`` log N(value; means, covariances), broadcast as ``log_prob_tril``."""
     return log_prob_tril(value, means, torch.linalg.cholesky(covariances))
-
-
-def draw_normal_precision(
-    loc: Tensor, precision_tril: Tensor, generator: torch.Generator | None
-) -> Tensor:
-    """``[..., D]`` draws of N(loc, P⁻¹) with P = L Lᵀ: loc + L⁻ᵀ z, z ~ N(0, I) drawn from
-    ``generator`` (on its device). Cov(L⁻ᵀ z) = L⁻ᵀ L⁻¹ = P⁻¹.
-
-    Args:
-        loc: ``[..., D]`` means.
-        precision_tril: ``[..., D, D]`` lower Cholesky factors of the precisions.
-    """
-    where = generator.device if generator is not None else loc.device
-    z = torch.randn(loc.shape, generator=generator, dtype=loc.dtype, device=where)
-    upper = precision_tril.transpose(-1, -2)
-    step = torch.linalg.solve_triangular(upper, _to(z, loc.device).unsqueeze(-1), upper=True)
-    return loc + step.squeeze(-1)

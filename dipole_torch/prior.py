@@ -97,29 +97,16 @@ class NormalInverseWishartPrior:
         return MultivariateNormal(self.mean_loc, covariance_matrix=self.mean_covariance)
 
     def sample_inverse_wishart(
-        self,
-        df: Tensor | float,
-        scale: Tensor,
-        generator: torch.Generator | None,
-        num_uniforms: int = 0,
-    ) -> Tensor | tuple[Tensor, Tensor]:
-        """``[..., D, D]`` draws of IW(df, scale) (batched over ``scale``'s leading dims).
-
-        A direct Bartlett draw (``dipole_torch.sampling.inverse_wishart``) from
-        ``generator``. With ``num_uniforms > 0``, ``[num_uniforms]`` float64 U(0, 1) draws
-        made next from the same generator are returned too, as a pair (the Metropolis-Hastings
-        acceptance uniforms of the Σ step).
+        self, df: Tensor | float, scale: Tensor, generator: torch.Generator | None
+    ) -> Tensor:
+        """``[..., D, D]`` draws of IW(df, scale) (batched over ``scale``'s leading dims), a
+        direct Bartlett draw (``dipole_torch.sampling.inverse_wishart``) from ``generator``.
 
         Args:
             df: scalar or ``[...]`` degrees of freedom.
             scale: ``[..., D, D]`` symmetric positive-definite scales.
         """
-        covariance = inverse_wishart(df, torch.linalg.cholesky(scale), generator)
-        if num_uniforms == 0:
-            return covariance
-        where = generator.device if generator is not None else scale.device
-        uniforms = torch.rand(num_uniforms, generator=generator, dtype=DTYPE, device=where)
-        return covariance, _to(uniforms, scale.device)
+        return inverse_wishart(df, torch.linalg.cholesky(scale), generator)
 
     def sample(
         self, n: int, generator: torch.Generator | None = None, symmetrize: bool = True

@@ -18,12 +18,11 @@ import torch
 from torch.distributions import MultivariateNormal
 
 from dipole_torch import Dipole
-from dipole_torch.dp.conditionals import posterior_point_estimate
+from dipole_torch.dp.conditionals import draw_mean, posterior_point_estimate
 from dipole_torch.dp.neal8 import neal8_sweep
 from dipole_torch.dp.reward_weights import RewardRegression
 from dipole_torch.dp.sampler import DPSampler
 from dipole_torch.dp.state import DPMixtureState, sequential_labels
-from dipole_torch.gaussian import draw_normal_precision
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.prior import NormalInverseWishartPrior
 
@@ -338,7 +337,8 @@ def test_posterior_point_estimate_is_the_conditional_means():
 
 
 # ---------------------------------------------------------------------- f. draws given P
-def test_draw_normal_precision_has_the_inverse_precision_as_covariance():
+def test_draw_mean_has_the_inverse_precision_as_covariance():
+    # The μ step's draw (``draw_mean``): μ0 + L⁻ᵀ (half + z) with P = L Lᵀ; half = 0 here.
     precision = spd([[4.0, 3.0], [3.0, 2.5]])
     covariance = torch.linalg.inv(precision)  # [[2.5, -3], [-3, 4]]
     tril = torch.linalg.cholesky(precision)
@@ -346,9 +346,10 @@ def test_draw_normal_precision_has_the_inverse_precision_as_covariance():
     assert (torch.linalg.inv(tril.T @ tril) - covariance).abs().max() > 2.0
     n = 100_000
     loc = torch.tensor([1.0, -2.0], dtype=F64)
-    draws = draw_normal_precision(
-        loc.expand(n, 2), tril.expand(n, 2, 2), torch.Generator().manual_seed(3)
-    )
+    eye = torch.eye(2, dtype=F64)
+    prior = NormalInverseWishartPrior(loc, eye, 5.0, eye, 0.0 * eye)
+    normals = torch.randn(n, 2, generator=torch.Generator().manual_seed(3), dtype=F64)
+    draws = draw_mean(prior, torch.zeros(n, 2, 1, dtype=F64), tril.expand(n, 2, 2), normals)
     within_four_standard_errors(draws, loc)
     empirical = torch.cov(draws.T)
     # Var of a sample covariance entry ≈ (s_ij² + s_ii s_jj) / n.
