@@ -97,18 +97,19 @@ class AuxiliaryDraws:
         return cls(means, covs, tril, log_r, logits, starting_log_r)
 
 
+def reward_logs(log_rewards: LogRewards | None, means: Tensor) -> Tensor:
+    """``[A]`` log r_c of ``means: [A, D]``: eq. 6's (``log_rewards``), or zeros (eq. 5)."""
+    return means.new_zeros(means.shape[0]) if log_rewards is None else log_rewards(means)
+
+
 def _log_rewards(
     log_rewards: LogRewards | None, means: Tensor, starting: Tensor | None
 ) -> tuple[Tensor, Tensor | None]:
     """``[A]`` log r_c of the auxiliary ``means: [A, D]`` and ``[K]`` those of ``starting``
-    (``None`` when not asked for), from one call of ``log_rewards`` (zeros without it)."""
-    queries = means if starting is None else torch.cat((starting, means))
-    if log_rewards is None:
-        log_r = queries.new_zeros(queries.shape[0])
-    else:
-        log_r = log_rewards(queries)
+    (``None`` when not asked for), from one call of ``reward_logs``."""
     if starting is None:
-        return log_r, None
+        return reward_logs(log_rewards, means), None
+    log_r = reward_logs(log_rewards, torch.cat((starting, means)))
     k = starting.shape[0]
     return log_r[k:], log_r[:k]
 
@@ -127,24 +128,33 @@ def starting_scores(y: Tensor, state: DPMixtureState, tril: Tensor, log_r: Tenso
     return component_scores(log_prob_tril(y[:, None, :], state.means, tril), log_r)
 
 
+def starting_counts(
+    state: DPMixtureState, capacity: int
+) -> tuple[list[int], list[int], np.ndarray]:
+    """The sweep's starting ``labels`` and ``counts`` as lists, and ``log_counts [capacity]``
+    (−inf for empty slots), the bookkeeping every numpy label pass starts from."""
+    labels = state.labels.tolist()
+    counts = [0] * state.num_components  # (counted in Python: a bincount and its read cost more)
+    for label in labels:
+        counts[label] += 1
+    log_counts = np.full(capacity, -math.inf)
+    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
+        log_counts[: len(counts)] = np.log(np.asarray(counts, dtype=float))
+    return labels, counts, log_counts
+
+
 def pass_start(
     y: Tensor, state: DPMixtureState, tril: Tensor, log_r: Tensor
 ) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
-    """What the numpy label passes start from: ``labels`` and ``counts`` as lists,
-    ``score [N, capacity]`` (``component_scores``; columns of components opened in the
-    sweep are filled only for the points still to come) and ``log_counts [capacity]`` (−inf
-    for empty slots), with room for ``capacity`` components (``open_slot`` grows it)."""
+    """What the numpy label passes start from: ``starting_counts``, and ``score [N,
+    capacity]`` (``component_scores``; columns of components opened in the sweep are filled
+    only for the points still to come), with room for ``capacity`` components
+    (``open_slot`` grows it)."""
     n, k = y.shape[0], state.num_components
-    labels = state.labels.tolist()
-    counts = [0] * k  # (counted in Python: a bincount and its read cost more at these sizes)
-    for label in labels:
-        counts[label] += 1
     capacity = max(2 * k, 8)
+    labels, counts, log_counts = starting_counts(state, capacity)
     score = np.full((n, capacity), -math.inf)
     score[:, :k] = starting_scores(y, state, tril, log_r).numpy()
-    log_counts = np.full(capacity, -math.inf)
-    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
-        log_counts[:k] = np.log(np.asarray(counts, dtype=float))
     return labels, counts, score, log_counts
 
 

@@ -24,7 +24,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dipole_torch.dp.labels import LogRewards, component_scores, free_slot, label_logits
+from dipole_torch.dp.labels import (
+    LogRewards,
+    component_scores,
+    free_slot,
+    label_logits,
+    reward_logs,
+    starting_counts,
+)
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE, log_prob_tril
 from dipole_torch.sampling import draw_categorical_numpy
@@ -86,10 +93,7 @@ def start_pool(
     means, covs, factors = draw(count)
     all_means = torch.cat((state.means, means))
     all_tril = torch.cat((tril, factors))
-    if log_rewards is None:
-        log_r = all_means.new_zeros(all_means.shape[0])
-    else:
-        log_r = log_rewards(all_means)
+    log_r = reward_logs(log_rewards, all_means)
     scores = component_scores(log_prob_tril(y[:, None, :], all_means, all_tril), log_r)
     return ComponentPool(all_means, torch.cat((state.covariances, covs)), all_tril, scores.numpy())
 
@@ -127,12 +131,7 @@ def label_pass_reuse(
     n, k = y.shape[0], state.num_components
     refills = min(n, POOL_BLOCK)
     pool = start_pool(y, state, tril, log_rewards, draw, m + refills)
-    labels = state.labels.tolist()
-    counts = [0] * k
-    for label in labels:
-        counts[label] += 1
-    with np.errstate(divide="ignore"):  # an empty component: log 0 = −inf, as intended
-        log_counts = np.log(np.asarray(counts + [0] * k, dtype=float))
+    labels, counts, log_counts = starting_counts(state, 2 * k)
     logits = np.empty(2 * k + m)
     column = list(range(k))  # component -> its pool column
     slot = list(range(k, k + m))  # auxiliary slot -> its pool column
@@ -170,8 +169,7 @@ def label_pass_reuse(
             # The slot taken is refilled from H (the pool's next column).
             if next_refill == end:
                 means, covs, factors = draw(refills)
-                log_r = means.new_zeros(refills) if log_rewards is None else log_rewards(means)
-                pool.extend(y, i + 1, means, covs, factors, log_r)
+                pool.extend(y, i + 1, means, covs, factors, reward_logs(log_rewards, means))
                 end += refills
             slot[j] = next_refill
             next_refill += 1
