@@ -735,25 +735,25 @@ def run_keeping_others(
     """``run_tasks``, completed with ``--keep-others`` by the other methods' cases of
     ``args.json`` (``kept_cases``, on the keys of ``grid``). Returns the cases, the wall
     seconds and every method among them, in the order of ``order``."""
-    kept = kept_cases(args.json, grid, methods, list(grid)) if args.keep_others else []
+    kept = kept_cases(args.json, grid, methods) if args.keep_others else []
     cases, wall = run_tasks(task, tasks, args.workers, progress)
     cases += kept
     rank = {m: i for i, m in enumerate(order)}
     return cases, wall, sorted({c["method"] for c in cases} | set(methods), key=rank.__getitem__)
 
 
-def kept_cases(path: Path, config: dict, methods: Sequence[str], same: Sequence[str]) -> list:
+def kept_cases(path: Path, grid: dict, methods: Sequence[str]) -> list:
     """The cases of ``path``'s report for every method not in ``methods``, for
     ``--keep-others``: a run of some methods (DIPOLE's, after a change to it) completed by the
     others' earlier cases rather than by running them again (every method here is seeded from
     its case: a rerun gives the same results; only their timings are the earlier run's).
-    The report's config must equal ``config`` on the keys ``same`` (the grid)."""
+    The report's config must equal ``grid`` on each of its keys."""
     report = json.loads(path.read_text())
-    for key in same:
-        if report["config"][key] != config[key]:
+    for key, value in grid.items():
+        if report["config"][key] != value:
             raise SystemExit(
                 f"--keep-others: {path} has {key}={report['config'][key]}, this run "
-                f"{config[key]}: run every method instead"
+                f"{value}: run every method instead"
             )
     return [c for c in report["cases"] if c["method"] not in methods]
 
