@@ -155,7 +155,7 @@ def importance_rows(
         kept ``[R]`` the rows to keep, in archive order: every sample of no policy and
         every sample in an importance set;
         index ``[K, M]`` the row of each slot (best first; in an empty slot the first owned
-        row, to be weighted 0);
+        row, or row 0 when no row is owned, to be weighted 0);
         valid ``[K, M]`` bool mask of filled slots.
     """
     if owner.device.type == "cpu" and rewards.device.type == "cpu":
@@ -166,7 +166,9 @@ def importance_rows(
     keep, index, valid = importance_sets(owner[owned], rewards[owned], num_policies, size)
     kept = owner < 0
     kept[owned[keep]] = True
-    return kept.nonzero().squeeze(-1), owned[index.clamp_min(0)], valid
+    # With no owned row (every kept sample a scout's), the empty slots point at row 0.
+    rows = owned[index.clamp_min(0)] if owned.numel() else torch.zeros_like(index)
+    return kept.nonzero().squeeze(-1), rows, valid
 
 
 def _importance_rows_numpy(

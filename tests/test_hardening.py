@@ -361,3 +361,27 @@ def test_a_checkpoint_round_trip_continues_identically():
         copy.tell(b, quadratic(b))
     assert same_state(opt.state_dict(), copy.state_dict())
     assert math.isfinite(opt.best()[1])
+
+
+def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
+    """``importance="global"`` keeps the best K·M samples of all; with M = 1 and many scouts
+    they can all be scouts', so that no policy owns a sample. The policies then take no
+    step (their importance sets are empty) and the run goes on."""
+    from dipole_torch.power import importance_rows
+
+    owner = torch.tensor([-1, -1, -1])
+    kept, rows, valid = importance_rows(owner, torch.tensor([0.3, 0.1, 0.2], dtype=F64), 2, 3)
+    assert kept.tolist() == [0, 1, 2] and not valid.any() and rows.shape == (2, 3)
+
+    # Two peaks, the second narrow; this seed's first iteration kept only scouts' samples.
+    def peaks(theta: Tensor) -> Tensor:
+        return torch.exp(-(theta - 1).square().sum(-1)) + 0.8 * torch.exp(
+            -(theta + 2).square().sum(-1) / 0.01
+        )
+
+    opt = Dipole(torch.zeros(5), torch.eye(5), bounds=(-5.0, 5.0), importance="global",
+                 explore=0.5, M=1, generator=torch.Generator().manual_seed(1))  # fmt: skip
+    while opt.trials < 300:
+        theta = opt.ask()
+        opt.tell(theta, peaks(theta))
+    assert torch.isfinite(opt.policy_means).all() and opt.num_policies >= 1
