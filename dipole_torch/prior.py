@@ -11,7 +11,12 @@ from torch.distributions import MultivariateNormal
 from dipole_torch.gaussian import DTYPE, symmetric
 from dipole_torch.memo import Memo
 from dipole_torch.sampling import _to, bartlett_factor, inverse_wishart, inverse_wishart_from_factor
-from dipole_torch.validation import check_finite, check_matrix_shape, check_positive_definite
+from dipole_torch.validation import (
+    check_finite,
+    check_matrix_shape,
+    check_positive_definite,
+    check_well_conditioned,
+)
 
 
 @dataclass
@@ -53,8 +58,10 @@ class NormalInverseWishartPrior:
         check_finite(self.mean_loc, "mean_loc")
         check_matrix_shape(self.mean_covariance, (d, d), "mean_covariance")
         check_positive_definite(self.mean_covariance, "mean_covariance")
+        check_well_conditioned(self.mean_covariance, "mean_covariance")
         check_matrix_shape(self.scale, (d, d), "scale")
         check_positive_definite(self.scale, "scale")
+        check_well_conditioned(self.scale, "scale")
         check_matrix_shape(self.regularization, (d, d), "regularization")
         check_finite(self.regularization, "regularization")
 

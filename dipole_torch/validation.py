@@ -24,6 +24,27 @@ def check_positive_definite(matrix: Tensor, name: str) -> None:
         raise ValueError(f"{name} is not positive definite (Cholesky failed)")
 
 
+# The smallest eigenvalue of a correlation matrix that float64 factorisations of matrices
+# drawn around it still survive (a covariance this close to singular, once an inverse-Wishart
+# draw adds its own spread, loses positive definiteness to rounding).
+MIN_CORRELATION_EIGENVALUE = 1e-10
+
+
+def check_well_conditioned(matrix: Tensor, name: str) -> None:
+    """Raise ``ValueError`` unless the positive definite ``matrix: [D, D]`` is far enough from
+    singular for float64: the eigenvalues of its correlation matrix (scale-free, so that
+    coordinates in any units pass) at least ``MIN_CORRELATION_EIGENVALUE``."""
+    std = matrix.diagonal().sqrt()
+    smallest = float(torch.linalg.eigvalsh(matrix / std[:, None] / std[None, :]).amin())
+    if not smallest >= MIN_CORRELATION_EIGENVALUE:
+        raise ValueError(
+            f"{name} is too close to singular for float64 (its correlation matrix's smallest "
+            f"eigenvalue is {smallest:.3g}, below {MIN_CORRELATION_EIGENVALUE:g}): some "
+            "coordinates are (nearly) linear combinations of the others; widen it or add a "
+            "regularisation"
+        )
+
+
 def check_matrix_shape(tensor: Tensor, shape: tuple[int, ...], name: str) -> None:
     """Raise ``ValueError`` unless ``tensor.shape == shape``; -1 in ``shape`` matches any size."""
     if not isinstance(tensor, Tensor):

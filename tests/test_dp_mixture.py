@@ -475,3 +475,41 @@ def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
     mu = torch.randn(mean, generator=g, dtype=F64)
     expected = torch.distributions.MultivariateNormal(mu, scale_tril=tril).log_prob(v)
     torch.testing.assert_close(log_prob_tril(v, mu, tril), expected)
+
+
+@pytest.mark.parametrize("method", ["neal8", "slice"])
+def test_fewer_points_than_dimensions_without_regularization_start_from_h(method):
+    """Two points in 3-D have a singular covariance; with no regularisation to hold it up its
+    factorisation succeeds on rounding alone (pivots of 1e-16), and a chain started there
+    went to NaN. Algorithm 1's start then takes H's expected covariance."""
+    g = torch.Generator().manual_seed(0)
+    y = torch.tensor(
+        [[4.4260187063415627e-07, -5.031709937335983e-07, 1.2262426565966482e-07],
+         [4.6769561727017473e-07, -5.211124585030555e-07, 1.6437935070891262e-07]],
+        dtype=F64,
+    )  # fmt: skip
+    prior = NormalInverseWishartPrior.from_exploration(
+        y.mean(0), torch.eye(3, dtype=F64), regularization=0.0
+    )
+    start = DPMixtureState.single_component(y, prior)
+    assert torch.equal(start.covariances[0], prior.expected_covariance)
+    state = DPSampler(prior, method=method).fit(y, num_sweeps=30, generator=g)
+    assert torch.isfinite(state.means).all() and torch.isfinite(state.covariances).all()
+    assert torch.isfinite(state.prior.mean_covariance).all()
+
+
+def test_a_nearly_singular_prior_is_refused_and_one_of_any_units_is_not():
+    d = 4
+    direction = torch.ones(d, 1, dtype=F64)
+    nearly = direction @ direction.T + 1e-13 * torch.eye(d, dtype=F64)  # rank 1 + rounding
+    for field in ("mean_covariance", "scale"):
+        fields = dict(
+            mean_loc=torch.zeros(d, dtype=F64), mean_covariance=torch.eye(d, dtype=F64),
+            df=d + 3.0, scale=torch.eye(d, dtype=F64), regularization=torch.zeros(d, d, dtype=F64),
+        )  # fmt: skip
+        fields[field] = nearly
+        with pytest.raises(ValueError, match=f"{field} is too close to singular"):
+            NormalInverseWishartPrior(**fields)
+    # Variances 24 orders of magnitude apart, uncorrelated: well conditioned in any units.
+    units = torch.diag(torch.tensor([1e-12, 1.0, 1e6, 1e12], dtype=F64))
+    NormalInverseWishartPrior.from_exploration(torch.zeros(d, dtype=F64), units)

@@ -20,6 +20,9 @@ if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is bui
 
 __all__ = ["DPMixtureState", "sequential_labels"]
 
+# A Cholesky pivot below this fraction of its variance is rounding: the matrix is singular.
+SINGULAR_PIVOT = 1e-10
+
 
 @dataclass
 class DPMixtureState:
@@ -66,7 +69,13 @@ class DPMixtureState:
         mean = data_mean(y)
         centred = y - mean  # the covariance from centred data: exact at any offset
         cov = centred.T @ centred / max(n - 1, 1) + prior.regularization
-        if torch.linalg.cholesky_ex(cov)[1] != 0 or n < 2:
+        # Fewer points than dimensions (or collinear ones) leave the data's covariance singular:
+        # unless the regularisation holds it up, a factorisation then either fails or
+        # succeeds on rounding, its pivots a few ulps of the diagonal, and the chain goes to
+        # NaN. H's expected covariance starts the chain instead.
+        tril, info = torch.linalg.cholesky_ex(cov)
+        pivots = tril.diagonal().square() / cov.diagonal()  # each variance's unexplained part
+        if info != 0 or n < 2 or not bool(pivots.amin() >= SINGULAR_PIVOT):
             cov = prior.expected_covariance + prior.regularization
         return cls(
             labels=torch.zeros(n, dtype=torch.long, device=y.device),
