@@ -134,3 +134,39 @@ def test_the_papers_set_and_a_checked_copy():
         options.explore = 0.3  # type: ignore[misc]
     mixed = Dipole(torch.zeros(2), 1.0, options=paper, M=3).options
     assert mixed == paper.replace(M=3)
+
+
+EDGES = {
+    "fewest samples kept, every sample a scout's chance": dict(M=1, m=1, explore=1.0),
+    "one policy, one sweep": dict(
+        max_policies=1, max_sampled=1, sweeps=1, initial_sweeps=1, settle=None
+    ),  # fmt: skip
+    "no regularisation, a clustering every iteration": dict(
+        regularization=0.0, reward_floor=0.999, cluster_every=1
+    ),
+    "early retirement, wide merging": dict(
+        retire_std=0.5, refine=0.9, merge_radius=10.0, pair_points=5
+    ),  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("importance", ["policy", "global"])
+@pytest.mark.parametrize("edge", list(EDGES))
+def test_options_at_the_edges_of_their_ranges_run_long(importance, edge):
+    """Each option at an end of its range, in 5-D, for 400 trials: the run goes on, finite.
+    (``importance="global"`` with M = 1 and many scouts once raised at the first iteration:
+    every one of the K·M samples kept was a scout's.)"""
+    centres = torch.zeros(2, 5, dtype=F64)
+    centres[:, 0] = torch.tensor([1.5, -1.5], dtype=F64)
+
+    def bumps(theta: torch.Tensor) -> torch.Tensor:
+        return 0.05 + (-(theta[:, None, :] - centres).square().sum(-1) / 0.5).exp().amax(-1)
+
+    opt = Dipole(torch.zeros(5), torch.eye(5), bounds=(-5.0, 5.0), importance=importance,
+                 generator=torch.Generator().manual_seed(1), **EDGES[edge])  # fmt: skip
+    while opt.trials < 400:
+        theta = opt.ask()
+        opt.tell(theta, bumps(theta))
+    assert torch.isfinite(opt.policy_means).all()
+    assert torch.isfinite(opt.policy_covariances).all()
+    assert opt.best()[1] > 0.5  # above the first batch's (about 0.1 in 5-D)
