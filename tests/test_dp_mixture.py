@@ -513,3 +513,37 @@ def test_a_nearly_singular_prior_is_refused_and_one_of_any_units_is_not():
     # Variances 24 orders of magnitude apart, uncorrelated: well conditioned in any units.
     units = torch.diag(torch.tensor([1e-12, 1.0, 1e6, 1e12], dtype=F64))
     NormalInverseWishartPrior.from_exploration(torch.zeros(d, dtype=F64), units)
+
+
+def test_a_current_covariance_factorised_on_rounding_alone_takes_the_proposal():
+    """Algorithm 1 starts from the points' covariance, singular for fewer points than
+    dimensions (DIPOLE at D = 10: 10 points in p = 11). The Σ step takes any proposal when the
+    current Σ (less R) fails to factorise: it lies outside the support. In about one case in
+    five it factorises on rounding instead, with pivots of 1e-16; its likelihood ratio was then
+    astronomical, every proposal was refused, and H's update divided by those pivots (Ψ0
+    numerically singular in 3 of 30 default runs at D = 10). Such a Σ is outside the support
+    too."""
+    from dipole_torch.dp.conditionals import Covariances, ParameterDraws, covariance_step
+
+    for seed in range(100):
+        g = torch.Generator().manual_seed(seed)
+        y = torch.randn(10, 11, generator=g, dtype=F64)
+        centred = y - y.mean(0)
+        singular = centred.T @ centred / 9  # rank 9
+        if torch.linalg.cholesky_ex(singular)[1] == 0:
+            break
+    else:
+        pytest.fail("no data set whose singular covariance factorises")
+    prior = NormalInverseWishartPrior.from_exploration(
+        y.mean(0), torch.eye(11, dtype=F64), regularization=1e-2
+    )
+    current = Covariances.of((singular + prior.regularization)[None])
+    mean = y.mean(0) + 0.1  # off the points' subspace, as a drawn mean is
+    counts = torch.tensor([10.0], dtype=F64)
+    scatter = (y - mean).T @ (y - mean)
+    for step in range(5):
+        draws = ParameterDraws.draw(prior, counts, 1, g)
+        _, accept = covariance_step(
+            prior, current, counts, scatter[None], draws.bartlett[0], draws.log_uniforms[0]
+        )
+        assert accept.all(), step

@@ -36,6 +36,7 @@ if TYPE_CHECKING:
 __all__ = [
     "Covariances",
     "ParameterDraws",
+    "SINGULAR_PIVOT",
     "check_estimate",
     "covariance_step",
     "data_mean",
@@ -48,6 +49,10 @@ __all__ = [
     "residual_sums",
     "scatter_matrices",
 ]
+
+
+# A Cholesky pivot below this fraction of its variance is rounding: the matrix is singular.
+SINGULAR_PIVOT = 1e-10
 
 
 def data_mean(y: Tensor) -> Tensor:
@@ -218,7 +223,18 @@ def covariance_step(
     # Σ', Σ' + R and the current Σ factorised in one call, then inverted in one: with the
     # current Σ + R's, the four terms of the ratio. (The state holds Σ + R; the current Σ is
     # its difference with R.)
-    tril, info = torch.linalg.cholesky_ex(torch.cat((proposal, candidate, current.covs - reg)))
+    stacked = torch.cat((proposal, candidate, current.covs - reg))
+    tril, info = torch.linalg.cholesky_ex(stacked)
+    # A current Σ that factorises on rounding alone, a pivot a few ulps of its variance, is as
+    # far outside the support as one that does not: Algorithm 1's start from fewer points
+    # than dimensions (DIPOLE at D = 10: 10 points in p = 11) does so about one time in five.
+    # (The proposals are inverse-Wishart draws, never that close to singular.)
+    current_sigma = stacked[2 * k :]
+    pivots = tril[2 * k :].diagonal(dim1=-2, dim2=-1).square() / current_sigma.diagonal(
+        dim1=-2, dim2=-1
+    )
+    outside = pivots.amin(-1) < SINGULAR_PIVOT
+    info = torch.cat((info[: 2 * k], torch.where(outside, 1, info[2 * k :])))
     # On CPU, where asking costs no sync, the masking is skipped when nothing needs it.
     masked = current.covs.device.type != "cpu" or bool(info.any())
     if masked:  # placeholders where a matrix did not factorise, masked out below

@@ -10,7 +10,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dipole_torch.dp.conditionals import data_mean, posterior_point_estimate, residual_sums
+from dipole_torch.dp.conditionals import (
+    SINGULAR_PIVOT,
+    data_mean,
+    posterior_point_estimate,
+    residual_sums,
+)
 from dipole_torch.gaussian import DTYPE, LOG_2PI, gaussian_log_prob
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.sampling import draw_categorical_numpy, uniforms
@@ -19,9 +24,6 @@ if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is bui
     from dipole_torch.gaussian_mixture import GaussianMixture
 
 __all__ = ["DPMixtureState", "sequential_labels"]
-
-# A Cholesky pivot below this fraction of its variance is rounding: the matrix is singular.
-SINGULAR_PIVOT = 1e-10
 
 
 @dataclass
