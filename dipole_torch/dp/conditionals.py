@@ -48,11 +48,20 @@ __all__ = [
     "resample_parameters",
     "residual_sums",
     "scatter_matrices",
+    "singular_by_rounding",
 ]
 
 
 # A Cholesky pivot below this fraction of its variance is rounding: the matrix is singular.
 SINGULAR_PIVOT = 1e-10
+
+
+def singular_by_rounding(tril: Tensor, matrix: Tensor) -> Tensor:
+    """``[...]`` whether ``matrix: [..., D, D]``, factorised as ``tril``, is singular though
+    its factorisation succeeded: a pivot below ``SINGULAR_PIVOT`` of its variance (the part
+    of that coordinate's variance the ones before it leave unexplained) is rounding."""
+    pivots = tril.diagonal(dim1=-2, dim2=-1).square() / matrix.diagonal(dim1=-2, dim2=-1)
+    return ~(pivots.amin(-1) >= SINGULAR_PIVOT)  # (NaN counts as singular)
 
 
 def data_mean(y: Tensor) -> Tensor:
@@ -191,6 +200,7 @@ def covariance_step(
     bartlett: Tensor,
     log_uniforms: Tensor,
     exact: bool = True,
+    check_support: bool = True,
 ) -> tuple[Covariances, Tensor]:
     """Σ | μ, y by independence Metropolis-Hastings, batched over K.
 
@@ -208,6 +218,12 @@ def covariance_step(
         log_uniforms: ``[K]`` log U(0, 1) acceptance draws.
         exact: ``False`` accepts every proposal (the conjugate draw of the unregularised
             model, then + R: a different model, kept as an ablation).
+        check_support: also count a current Σ that factorises on rounding alone as outside
+            the support (``singular_by_rounding``). Only a chain's start can be one
+            (Algorithm 1's covariance of fewer points than dimensions: DIPOLE at D = 10 has 10
+            points in p = 11, and about one time in five it factorises); after a step the
+            current Σ is a proposal taken or a Σ that passed, so ``resample_parameters``
+            asks for the test at its first step only.
 
     Returns:
         The new Σ + R (``Covariances``), and ``[K]`` whether each proposal was accepted.
@@ -225,16 +241,11 @@ def covariance_step(
     # its difference with R.)
     stacked = torch.cat((proposal, candidate, current.covs - reg))
     tril, info = torch.linalg.cholesky_ex(stacked)
-    # A current Σ that factorises on rounding alone, a pivot a few ulps of its variance, is as
-    # far outside the support as one that does not: Algorithm 1's start from fewer points
-    # than dimensions (DIPOLE at D = 10: 10 points in p = 11) does so about one time in five.
-    # (The proposals are inverse-Wishart draws, never that close to singular.)
-    current_sigma = stacked[2 * k :]
-    pivots = tril[2 * k :].diagonal(dim1=-2, dim2=-1).square() / current_sigma.diagonal(
-        dim1=-2, dim2=-1
-    )
-    outside = pivots.amin(-1) < SINGULAR_PIVOT
-    info = torch.cat((info[: 2 * k], torch.where(outside, 1, info[2 * k :])))
+    if check_support:
+        # A current Σ that factorises on rounding alone is as far outside the support as one
+        # that does not (``singular_by_rounding``).
+        outside = singular_by_rounding(tril[2 * k :], stacked[2 * k :])
+        info = torch.cat((info[: 2 * k], torch.where(outside, 1, info[2 * k :])))
     # On CPU, where asking costs no sync, the masking is skipped when nothing needs it.
     masked = current.covs.device.type != "cpu" or bool(info.any())
     if masked:  # placeholders where a matrix did not factorise, masked out below
@@ -306,7 +317,7 @@ def resample_parameters(
         scatter = scatter_matrices(y, labels, means)
         covariances, _ = covariance_step(
             prior, covariances, counts, scatter, draws.bartlett[step], draws.log_uniforms[step],
-            exact_covariance,
+            exact_covariance, check_support=step == 0,
         )  # fmt: skip
     return replace(state, means=means, covariances=covariances.covs)
 

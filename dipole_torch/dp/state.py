@@ -11,10 +11,10 @@ import torch
 from torch import Tensor
 
 from dipole_torch.dp.conditionals import (
-    SINGULAR_PIVOT,
     data_mean,
     posterior_point_estimate,
     residual_sums,
+    singular_by_rounding,
 )
 from dipole_torch.gaussian import DTYPE, LOG_2PI, gaussian_log_prob
 from dipole_torch.prior import NormalInverseWishartPrior
@@ -76,8 +76,7 @@ class DPMixtureState:
         # succeeds on rounding, its pivots a few ulps of the diagonal, and the chain goes to
         # NaN. H's expected covariance starts the chain instead.
         tril, info = torch.linalg.cholesky_ex(cov)
-        pivots = tril.diagonal().square() / cov.diagonal()  # each variance's unexplained part
-        if info != 0 or n < 2 or not bool(pivots.amin() >= SINGULAR_PIVOT):
+        if info != 0 or n < 2 or bool(singular_by_rounding(tril, cov)):
             cov = prior.expected_covariance + prior.regularization
         return cls(
             labels=torch.zeros(n, dtype=torch.long, device=y.device),
