@@ -11,7 +11,13 @@ from importlib import import_module
 from pathlib import Path
 
 from dipole_torch.dipole import Dipole
-from dipole_torch.dp import DPMixtureState, DPSampler, SliceChain, reward_weights
+from dipole_torch.dp import (
+    DPMixtureState,
+    DPNumericalError,
+    DPSampler,
+    SliceChain,
+    reward_weights,
+)
 from dipole_torch.options import DipoleOptions
 from dipole_torch.power import importance_sets, power_update
 from dipole_torch.power_optimizer import Power
@@ -53,6 +59,7 @@ del _root
 __all__ = [
     "DPMixtureKernel",
     "DPMixtureState",
+    "DPNumericalError",
     "DPSampler",
     "Dipole",
     "DipoleOptions",

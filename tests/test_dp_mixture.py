@@ -547,3 +547,30 @@ def test_a_current_covariance_factorised_on_rounding_alone_takes_the_proposal():
             prior, current, counts, scatter[None], draws.bartlett[0], draws.log_uniforms[0]
         )
         assert accept.all(), step
+
+
+@pytest.mark.parametrize("method", ["neal8", "slice"])
+def test_data_far_off_the_prior_fail_with_an_error_that_names_the_scales(method):
+    """Two points at 1e10 repeated 100 times under a unit prior: H's update adds Σ0 ≈ I to a
+    scatter of 1e20, which rounds to a singular matrix (10 seeds of 10 fail so). The sweep
+    says so, in the data's and the prior's terms, as a LinAlgError (what Dipole catches to
+    skip a clustering)."""
+    from dipole_torch import DPNumericalError
+
+    d = 3
+    g = torch.Generator().manual_seed(0)
+    y = (1e10 * torch.randn(2, d, generator=g, dtype=F64)).repeat(100, 1)
+    eye = torch.eye(d, dtype=F64)
+    prior = NormalInverseWishartPrior(
+        mean_loc=torch.zeros(d, dtype=F64), mean_covariance=eye, df=d + 3.0, scale=eye,
+        regularization=1e-3 * eye,
+    )  # fmt: skip
+    sampler = DPSampler(prior, method=method)
+    with pytest.raises(DPNumericalError, match="another scale than the data") as caught:
+        sampler.fit(y, num_sweeps=20, generator=g)
+    assert isinstance(caught.value, torch.linalg.LinAlgError)
+    assert "2 distinct points" in str(caught.value)
+    # The same data on the prior's scale fit.
+    scaled = (y - y.mean(0)) / y.std(0)
+    state = DPSampler(prior, method=method).fit(scaled, num_sweeps=20, generator=g)
+    assert torch.isfinite(state.means).all()

@@ -13,12 +13,13 @@ All DP mathematics runs in float64 (``dipole_torch.gaussian.DTYPE``).
 
 from dipole_torch.dp.conditionals import posterior_point_estimate, resample_parameters
 from dipole_torch.dp.reward_weights import RewardRegression, reward_weights
-from dipole_torch.dp.sampler import DPSampler
+from dipole_torch.dp.sampler import DPNumericalError, DPSampler
 from dipole_torch.dp.slice import SliceChain
 from dipole_torch.dp.state import DPMixtureState, sequential_labels
 
 __all__ = [
     "DPMixtureState",
+    "DPNumericalError",
     "DPSampler",
     "RewardRegression",
     "SliceChain",

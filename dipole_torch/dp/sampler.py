@@ -12,11 +12,20 @@ from dipole_torch.gaussian import DTYPE
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.validation import check_choice, check_count, check_finite, check_matrix_shape
 
-__all__ = ["Chain", "DPSampler"]
+__all__ = ["Chain", "DPNumericalError", "DPSampler"]
 
 Chain = DPMixtureState | SliceChain  # what a sweep carries over: see DPSampler.sweep
 
 INITS = ("single", "sequential")
+
+
+class DPNumericalError(torch.linalg.LinAlgError):
+    """A sweep of ``DPSampler`` met a matrix that does not factorise in float64. Its
+    message compares the data's scale with the prior's: the usual cause
+    is a prior on another scale than the data (H's update then adds a tiny Σ0 to huge
+    scatter, which rounds to a singular matrix). A ``torch.linalg.LinAlgError``, so code
+    that already catches numerical failures (``Dipole`` skips such a clustering) still does.
+    """
 
 
 class DPSampler:
@@ -129,10 +138,17 @@ class DPSampler:
         return chain.state() if isinstance(chain, SliceChain) else chain
 
     def sweep(self, y: Tensor, chain: Chain, generator: torch.Generator | None = None) -> Chain:
-        """One sweep from ``chain`` (``to_chain``) on ``y: [N, D]`` (float64)."""
-        if self.method == "slice":
-            return slice_sweep(y, chain, self, generator)
-        return neal8_sweep(y, chain, self, generator)
+        """One sweep from ``chain`` (``to_chain``) on ``y: [N, D]`` (float64).
+
+        Raises:
+            DPNumericalError: a matrix of the sweep did not factorise (see its message).
+        """
+        try:
+            if self.method == "slice":
+                return slice_sweep(y, chain, self, generator)
+            return neal8_sweep(y, chain, self, generator)
+        except torch.linalg.LinAlgError as error:
+            raise DPNumericalError(_failure_message(y, self.prior, error)) from error
 
     def fit(
         self,
@@ -187,6 +203,32 @@ class DPSampler:
             if unchanged >= settle:
                 break
         return self.to_state(chain)
+
+
+def _failure_message(y: Tensor, prior: NormalInverseWishartPrior, error: Exception) -> str:
+    """Why a sweep failed, in the data's and the prior's terms (computed only on failure)."""
+    prior_std = torch.maximum(
+        prior.mean_covariance.diagonal(), prior.expected_covariance.diagonal()
+    ).sqrt()
+    spread = y.std(0) if y.shape[0] > 1 else torch.zeros_like(y[0])
+    offset = (y.mean(0) - prior.mean_loc).abs()
+    ratio = float((torch.maximum(spread, offset) / prior_std).max())
+    distinct = torch.unique(y, dim=0).shape[0]
+    message = (
+        f"DPSampler: a sweep met a matrix that does not factorise in float64 "
+        f"({str(error).splitlines()[0]}). The data y [{y.shape[0]}, {y.shape[1]}] hold "
+        f"{distinct} distinct points; their spread and offset from the prior's mean_loc "
+        f"reach {ratio:.3g} times the prior's std (from mean_covariance and E[Σ])."
+    )
+    if ratio > 1e3:
+        return message + (
+            " The prior is on another scale than the data: give NormalInverseWishartPrior a "
+            "mean_covariance and a scale on the data's scale (or rescale y)."
+        )
+    return message + (
+        " The data may be degenerate (repeated points, or points on a lower-dimensional "
+        "set): a larger regularization keeps the components' covariances away from singular."
+    )
 
 
 def _partition(labels: Tensor) -> tuple[int, ...]:
