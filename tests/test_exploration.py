@@ -38,3 +38,44 @@ def test_new_policies_explore_with_the_shape_of_sigma_start():
                 opt.policy_covariances.diagonal(dim1=-2, dim2=-1)
             )
             assert off.abs().max() < 1e-12
+
+
+def test_a_long_streak_of_successes_up_a_ridge_keeps_the_covariance_factorisable():
+    """Up a narrow peak (1 − √distance) from 3 units away with Σ_start = 1e-3 I, nearly
+    every sample succeeds along one direction: the rank-one update shrank the other one by
+    (1 − c_cov) each time, until at trial 326 the covariance had rank one to rounding
+    (eigenvalues −1e-19 and 1.6e-3) and the next ask failed to factorise it. With the
+    condition number bounded, the run goes on to the peak."""
+    centre = torch.tensor([-2.2174632234891436, 2.4956688703858863], dtype=F64)
+
+    def peak(theta):
+        return 1.0 - (theta - centre).norm(dim=-1).sqrt()
+
+    opt = Dipole(
+        torch.full((2,), -0.5361559892466568, dtype=F64),
+        1e-3 * torch.eye(2, dtype=F64),
+        generator=torch.Generator().manual_seed(3),
+    )
+    while opt.trials < 1500:
+        theta = opt.ask()
+        opt.tell(theta, peak(theta))
+        assert (torch.linalg.cholesky_ex(opt.policy_covariances)[1] == 0).all()
+    assert float(peak(opt.policy_means).max()) > 0.99
+
+
+def test_the_condition_floor_acts_only_on_covariances_that_lack_margin():
+    from dipole_torch.mechanisms.exploration import MAX_CONDITION, bounded_condition
+
+    sigma_start = torch.diag(torch.tensor([1e-6, 1e4], dtype=F64))
+    opt = Dipole(torch.zeros(2, dtype=F64), sigma_start, generator=torch.Generator())
+    scale = sigma_start.diagonal().sqrt()
+    direction = torch.tensor([1.0, 1.0], dtype=F64) * scale
+    rank_one = direction[:, None] * direction[None, :]  # singular
+    fine = torch.diag(torch.tensor([1.0, 1e-6], dtype=F64)) * sigma_start  # condition 1e6
+    covs = torch.stack((rank_one, fine))
+    out = bounded_condition(opt, covs)
+    assert torch.equal(out[1], fine)
+    whitened = out[0] / (scale[:, None] * scale[None, :])
+    eig = torch.linalg.eigvalsh(whitened)
+    assert eig.min() > 0 and eig.max() / eig.min() < 3 * MAX_CONDITION
+    assert torch.equal(bounded_condition(opt, fine[None]), fine[None])

@@ -24,9 +24,11 @@ if TYPE_CHECKING:
     from dipole_torch.search import PolicySearch, TellBatch
 
 __all__ = [
+    "MAX_CONDITION",
     "PosteriorExploration",
     "SuccessRule",
     "SuccessRuleParameters",
+    "bounded_condition",
     "make_exploration",
 ]
 
@@ -98,7 +100,8 @@ class SuccessRule:
     exp((p̄ − p_t) / (d (1 − p_t)))², never beyond Σ_start (a policy that keeps failing while
     it grows would otherwise turn into random search). Exploration then shrinks
     geometrically near an optimum and grows on a slope, and the covariance learns the
-    optimum's shape. The covariance is kept from clustering to clustering.
+    optimum's shape. The covariance is kept from clustering to clustering. Its condition
+    number is held near ``MAX_CONDITION`` (``bounded_condition``; not in Igel et al.).
 
     Σ here is Igel et al.'s σ²C in one matrix, so p is their σ·p_c: it is scaled with the
     covariance's scale at every sample. (Left in absolute units, a path from steps of
@@ -145,7 +148,7 @@ class SuccessRule:
                 succeeded[:, None], (1 - c_c) * paths + math.sqrt(c_c * (2 - c_c)) * step, paths
             )
             rank_one = (1 - c_cov) * covs + c_cov * paths[:, :, None] * paths[:, None, :]
-            covs = torch.where(succeeded[:, None, None], rank_one, covs)
+            covs = torch.where(succeeded[:, None, None], bounded_condition(search, rank_one), covs)
         c = constants.smoothing
         success = (1 - c) * rows(policies.success) + c * succeeded.to(DTYPE)
         p_t = constants.target_success
@@ -171,6 +174,37 @@ class SuccessRule:
         whitened = torch.linalg.solve(search.sigma_start, covariances)
         spread = whitened.diagonal(dim1=-2, dim2=-1).mean(-1).clamp(max=1.0)
         return spread[..., None, None] * search.sigma_start
+
+
+# The largest condition number a policy's exploration covariance may reach, in Σ_start's
+# per-axis units (pycma stops a run at 1e14; float64 rounding makes a covariance singular
+# near 1e16).
+MAX_CONDITION = 1e12
+
+
+def bounded_condition(search: PolicySearch, covariances: Tensor) -> Tensor:
+    """``[K, D, D]`` ``covariances`` with a floor where one is too ill-conditioned.
+
+    The rank-one update shrinks every direction but the path's by (1 − c_cov) at each success.
+    A policy that succeeds for hundreds of samples along one direction (a ridge up a narrow
+    peak) ends with a covariance of rank one to rounding, which no longer factorises: the
+    next ask failed. Where the Cholesky factor of the covariance in Σ_start's per-axis units
+    has a pivot below 1/``MAX_CONDITION`` of its largest variance (or none), that much of
+    Σ_start's diagonal is added: the condition number stays near ``MAX_CONDITION`` and the
+    policy keeps exploring every direction (a deviation from Igel et al.'s rule, which has no
+    floor; it never acts on a covariance that factorises with margin)."""
+    variances = search.sigma_start.diagonal()  # [D]
+    scale = variances.sqrt()
+    whitened = covariances / (scale[:, None] * scale[None, :])
+    largest = whitened.diagonal(dim1=-2, dim2=-1).amax(-1)  # [K]
+    tril, info = torch.linalg.cholesky_ex(whitened)
+    pivots = tril.diagonal(dim1=-2, dim2=-1).square().amin(-1)
+    floor = largest / MAX_CONDITION
+    low = (info != 0) | (pivots < floor)
+    if True not in low.tolist():
+        return covariances
+    added = torch.where(low, floor, torch.zeros_like(floor))
+    return covariances + added[:, None, None] * torch.diag_embed(variances)
 
 
 def make_exploration(kind: str, dim: int) -> SuccessRule | PosteriorExploration:
