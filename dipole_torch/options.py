@@ -85,8 +85,10 @@ class DipoleOptions:
             (0: never).
         refine: once no policy is active, retired ones are woken with their threshold times
             this, in [0, 1) (0: never woken); see mechanisms.retirement.Waking.
-        refine_share: woken policies take at most this share of the trials after the first
-            time every policy retired, in (0, 1); restarts (scouts) take the rest.
+        refine_share: a wake starts only while woken policies have taken less than this
+            share of the trials since every policy first retired, in (0, 1); restarts
+            (scouts) take the rest. A woken policy runs on to its next threshold, so the
+            share taken can exceed it (see mechanisms.retirement.Waking).
         merge_radius: drop a policy within this many exploration stds of another (0: never).
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
             draws, exact too, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
