@@ -20,11 +20,11 @@ INITS = ("single", "sequential")
 
 
 class DPNumericalError(torch.linalg.LinAlgError):
-    """A sweep of ``DPSampler`` met a matrix that does not factorise in float64. Its
-    message compares the data's scale with the prior's: the usual cause
-    is a prior on another scale than the data (H's update then adds a tiny Σ0 to huge
-    scatter, which rounds to a singular matrix). A ``torch.linalg.LinAlgError``, so code
-    that already catches numerical failures (``Dipole`` skips such a clustering) still does.
+    """A sweep of ``DPSampler`` met a matrix that does not factorise in float64. Its message
+    compares the data's scale with the prior's: the usual cause is a prior on another scale
+    than the data (H's update then adds a tiny Σ0 to a huge scatter, which rounds to a
+    singular matrix). A ``torch.linalg.LinAlgError``, so code that already catches numerical
+    failures (``Dipole`` skips such a clustering) still does.
     """
 
 
