@@ -243,23 +243,19 @@ def _match_by_overlap(
     """``match_by_overlap`` on the host: ``pairs`` lists (component, position in
     ``policies``) of each sample an old policy owned. Of equal overlaps the first in
     (component, policy) order is matched first, as ``argmax`` of the flattened counts."""
-    overlap = [[0] * len(policies) for _ in range(num_components)]
-    for c, j in pairs:
-        overlap[c][j] += 1
+    # Greedy matching on the sparse counts, largest first (ties by (component, policy)):
+    # O(N log N) in the samples, where rescanning a C × P table for each match grew as
+    # C·P·min(C, P) with the number of policies (``max_policies=None``).
+    overlap: dict[tuple[int, int], int] = {}
+    for pair in pairs:
+        overlap[pair] = overlap.get(pair, 0) + 1
     continues = [-1] * num_components
-    while True:
-        most, at = 0, None
-        for c, row in enumerate(overlap):
-            for j, count in enumerate(row):
-                if count > most:
-                    most, at = count, (c, j)
-        if at is None:
-            return continues
-        c, j = at
-        continues[c] = policies[j]
-        overlap[c] = [0] * len(policies)
-        for row in overlap:
-            row[j] = 0
+    taken = [False] * len(policies)
+    for (c, j), _ in sorted(overlap.items(), key=lambda item: (-item[1], item[0])):
+        if continues[c] < 0 and not taken[j]:
+            continues[c] = policies[j]
+            taken[j] = True
+    return continues
 
 
 def _start_labels(owner: Tensor, num_policies: int) -> Tensor:
