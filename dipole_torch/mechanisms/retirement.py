@@ -46,11 +46,13 @@ FINEST_STD = 1e-12
 VISIBLE_GAIN = 1e-9
 
 
-def exploration_distance(search: PolicySearch, diff: Tensor) -> Tensor:
+def exploration_distance(search: PolicySearch, diff: Tensor, rows: Tensor | None = None) -> Tensor:
     """``[K, P]`` the Mahalanobis lengths of ``diff: [K, P, D]`` under each policy's
-    exploration covariance (row k under policy k's); inf in the rows whose covariance has
-    lost definiteness in float64."""
+    exploration covariance (row k under policy k's, or under policy ``rows[k]``'s for
+    ``rows: [K]``); inf in the rows whose covariance has lost definiteness in float64."""
     chol, ok = search.policy_set.exploration_factors()
+    if rows is not None:
+        chol, ok = chol[rows], ok[rows]
     z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
     return torch.where(ok[:, None], z.square().sum(-2).sqrt(), math.inf)
 
@@ -385,22 +387,31 @@ class Retirement:
             policies.active = policies.active & self._exploring(search)
         if self.merge_radius <= 0 or search.num_policies < 2:
             return
-        # Mahalanobis distance of policy b's mean under policy a's exploration: [K, K]
-        # (inf: a's covariance lost definiteness in float64 and judges no duplicates).
-        diff = policies.means[None, :, :] - policies.means[:, None, :]
-        # The pairwise decisions below run on the host: K is a handful of policies.
-        near = (exploration_distance(search, diff) < self.merge_radius).tolist()
-        k = len(near)
-        for a in range(k):
-            near[a][a] = False
-        best = search.policy_best_rewards.tolist()
+        # Only an active policy a judges duplicates (near[a][b], and near[b][a] for an active
+        # b): the distances under the active policies' explorations alone, [A, K], where a
+        # long run holds dozens of retired policies and a few active ones.
         active = policies.active_flags()
+        judges = [a for a in range(len(active)) if active[a]]
+        if not judges:
+            return
+        at = torch.tensor(judges, dtype=torch.long, device=search.device)
+        # Mahalanobis distance of policy b's mean under policy a's exploration (inf: a's
+        # covariance lost definiteness in float64 and judges no duplicates).
+        diff = policies.means[None, :, :] - policies.means[at, None, :]
+        # The pairwise decisions below run on the host: A and K are a handful of policies.
+        rows = (exploration_distance(search, diff, at) < self.merge_radius).tolist()
+        k = len(active)
+        near: list[list[bool] | None] = [None] * k
+        for a, row in zip(judges, rows, strict=True):
+            row[a] = False
+            near[a] = row
+        best = search.policy_best_rewards.tolist()
         drop = [False] * k
-        for a in range(k):
+        for a in judges:
             # A policy whose exploration covers two or more others is judged by none of
             # them: exploring that widely (a new policy), it may well be on a hill of its
             # own, which only a hill-valley probe can tell.
-            if not active[a] or sum(near[a]) != 1:
+            if sum(near[a]) != 1:
                 continue
             for b in range(k):
                 if a == b or drop[b] or drop[a]:
