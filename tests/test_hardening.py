@@ -363,6 +363,45 @@ def test_a_checkpoint_round_trip_continues_identically():
     assert math.isfinite(opt.best()[1])
 
 
+def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpoint():
+    """A long successful run without regularisation or retirement: its policies converge
+    on the optimum, their covariances shrink, and the DP prior that H's Gibbs update draws
+    from them is closer to singular than a prior a user may pass (correlation eigenvalue
+    below 1e-10, here by trial ~760). Its checkpoint must load and continue the same run."""
+    from dipole_torch.prior import NormalInverseWishartPrior
+    from dipole_torch.validation import check_well_conditioned
+
+    def sphere(theta: Tensor) -> Tensor:
+        return -1e6 - theta.square().sum(-1)
+
+    def make(seed):
+        return Dipole(torch.full((3,), -0.2, dtype=F64), torch.eye(3, dtype=F64),
+                      regularization=0.0, retire_std=0.0,
+                      generator=torch.Generator().manual_seed(seed))  # fmt: skip
+
+    opt = make(0)
+    while opt.trials < 800:
+        theta = opt.ask()
+        opt.tell(theta, sphere(theta))
+    prior = opt.dp_state.prior
+    with pytest.raises(ValueError, match="too close to singular"):
+        check_well_conditioned(prior.scale, "scale")  # what a user-given prior must pass
+    copy = make(99)
+    copy.load_state_dict(opt.state_dict())
+    for _ in range(10):
+        a, b = opt.ask(), copy.ask()
+        assert torch.equal(a, b)
+        opt.tell(a, sphere(a))
+        copy.tell(b, sphere(b))
+    assert same_state(opt.state_dict(), copy.state_dict())
+    # Restoring still refuses what is malformed, naming it.
+    state = prior.state_dict()
+    with pytest.raises(ValueError, match="scale"):
+        NormalInverseWishartPrior.from_state_dict({**state, "scale": -state["scale"]})
+    with pytest.raises(ValueError, match="holds"):
+        NormalInverseWishartPrior.from_state_dict({k: v for k, v in state.items() if k != "df"})
+
+
 def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
     """``importance="global"`` keeps the best K·M samples of all; with M = 1 and many scouts
     they can all be scouts', so that no policy owns a sample. The policies then take no
