@@ -59,21 +59,28 @@ def capture(d: int, trials: int, seed: int = 1) -> tuple[list[dict], object]:
     """The clusterings of one default DIPOLE run: ``y``, sweeps, warm start, generator state."""
     opt = make("dipole", d, seed)
     captured = []
-    fit = opt._fit
+    make_sampler = opt._sampler
 
-    def recording_fit(y, sweeps, start=None, *args, **kwargs):
-        # As Dipole._fit does: a warm start ends once its partition settles.
-        settle = None if start is None else opt.options.settle
-        captured.append(
-            dict(y=y.clone(), sweeps=sweeps, start=start, args=args,
-                 kwargs=kwargs | {"settle": settle}, generator=opt.generator.get_state())
-        )  # fmt: skip
-        return fit(y, sweeps, start, *args, **kwargs)
+    def recording_sampler(prior):
+        # Each call of the sampler's fit as Dipole makes it (sweeps, warm start, settle).
+        sampler = make_sampler(prior)
+        fit = sampler.fit
 
-    opt._fit = recording_fit
+        def recording_fit(y, sweeps, generator, start=None, **kwargs):
+            captured.append(
+                dict(y=y.clone(), sweeps=sweeps, start=start, kwargs=kwargs,
+                     generator=generator.get_state())
+            )  # fmt: skip
+            return fit(y, sweeps, generator, start, **kwargs)
+
+        sampler.fit = recording_fit
+        return sampler
+
+    opt._sampler = recording_sampler
     while opt.trials < trials:
         theta = opt.ask()
         opt.tell(theta, reward(theta))
+    del opt.sampler.fit  # the replays call the sampler's own fit
     return captured, opt
 
 
@@ -81,8 +88,7 @@ def replay(opt, clustering: dict) -> None:
     """One captured clustering again, from its generator state."""
     opt.generator.set_state(clustering["generator"])
     y, start = clustering["y"], clustering["start"]
-    extra, options = clustering["args"], clustering["kwargs"]
-    state = opt.sampler.fit(y, clustering["sweeps"], opt.generator, start, *extra, **options)
+    state = opt.sampler.fit(y, clustering["sweeps"], opt.generator, start, **clustering["kwargs"])
     posterior_point_estimate(y, state)
 
 
