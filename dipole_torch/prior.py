@@ -207,8 +207,21 @@ class NormalInverseWishartPrior:
         posterior_tril = torch.linalg.cholesky_ex(hyper_scale_precision + precisions)[0]
         root = torch.linalg.solve_triangular(posterior_tril.mT, bartlett[1], upper=True)
         scale = symmetric(root @ root.mT)
-        # Built from draws that are positive definite by construction: the validation of
-        # __post_init__ (a few Cholesky factorisations) would run once per sweep for nothing.
+        # Both draws are positive definite in exact arithmetic, but rounding can take them
+        # off it where the components' precisions are nearly singular (policies converged
+        # without regularisation on returns that are a function of θ). Factorised here, as
+        # the next sweep needs (memoised below, so nothing is factorised twice): a draw that
+        # does not factorise fails this sweep like any other matrix that does not, instead
+        # of ending the chain with an H that every later clustering would fail on.
+        scale_tril, scale_info = torch.linalg.cholesky_ex(scale)
+        mean_tril, mean_info = torch.linalg.cholesky_ex(mean_covariance)
+        if bool((scale_info != 0) | (mean_info != 0)):
+            raise torch.linalg.LinAlgError(
+                "the Gibbs update of H drew a scale Ψ0 or a mean covariance Σ0 that is not "
+                "positive definite in float64"
+            )
+        # The rest of __post_init__'s validation (a few more factorisations) would run once
+        # per sweep for nothing.
         prior = object.__new__(NormalInverseWishartPrior)
         prior.__dict__.update(
             mean_loc=mean_loc,
@@ -217,6 +230,8 @@ class NormalInverseWishartPrior:
             scale=scale,
             regularization=self.regularization,
         )
+        prior._memo("scale_tril", "scale", lambda _: scale_tril)
+        prior._memo("mean_tril", "mean_covariance", lambda _: mean_tril)
         return prior
 
     # The factorisations below are memoised on the prior (``dipole_torch.memo.Memo``): a

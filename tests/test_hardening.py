@@ -402,6 +402,56 @@ def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpo
         NormalInverseWishartPrior.from_state_dict({k: v for k, v in state.items() if k != "df"})
 
 
+def test_a_gibbs_update_that_rounds_h_off_positive_definite_fails_its_sweep_not_the_chain(
+    monkeypatch,
+):
+    """Without regularisation, on returns that are a function of θ, a converged policy's
+    components are nearly singular along the curve (θ, r(θ)), and H's Gibbs update can draw
+    a scale Ψ0 that is positive definite only in exact arithmetic. That sweep fails and the
+    clustering is skipped; the chain never keeps such an H (which would fail every later
+    clustering and every checkpoint load). This option set and seed reach it by trial 905."""
+    from dipole_torch.prior import NormalInverseWishartPrior
+
+    update, refused = NormalInverseWishartPrior.updated, []
+
+    def counting_update(self, *args, **kwargs):
+        try:
+            return update(self, *args, **kwargs)
+        except torch.linalg.LinAlgError:
+            refused.append(True)
+            raise
+
+    monkeypatch.setattr(NormalInverseWishartPrior, "updated", counting_update)
+
+    def flat_top(theta: Tensor) -> Tensor:
+        return -1e6 - theta.square().sum(-1)
+
+    def make(seed):
+        return Dipole(torch.full((1,), 0.38, dtype=F64), torch.eye(1, dtype=F64),
+                      importance="global", explore=0.0, hill_valley=False, max_policies=2,
+                      max_sampled=1, retire_std=0.0, merge_radius=0.0, settle=3, alpha=0.01,
+                      m=1, regularization=0.0, reward_weighted=False,
+                      generator=torch.Generator().manual_seed(seed))  # fmt: skip
+
+    opt = make(703)
+    while opt.trials < 1000:
+        theta = opt.ask()
+        opt.tell(theta, flat_top(theta))
+        prior = opt.dp_state.prior
+        for name in ("scale", "mean_covariance"):
+            _, info = torch.linalg.cholesky_ex(getattr(prior, name))
+            assert int(info) == 0, f"the chain kept an H whose {name} does not factorise"
+    assert refused, "the run no longer reaches a refused update of H: choose another seed"
+    assert opt.clusterings_skipped > 0
+    copy = make(99)
+    copy.load_state_dict(opt.state_dict())
+    for _ in range(5):
+        a, b = opt.ask(), copy.ask()
+        assert torch.equal(a, b)
+        opt.tell(a, flat_top(a))
+        copy.tell(b, flat_top(b))
+
+
 def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
     """``importance="global"`` keeps the best K·M samples of all; with M = 1 and many scouts
     they can all be scouts', so that no policy owns a sample. The policies then take no
