@@ -65,6 +65,7 @@ def test_outputs_and_tensorboard_scalars(finished_run):
         "reward/best_so_far",
         "search/policies",
         "search/log10_exploration_std",
+        "search/clusterings_skipped",
     } <= tags
     assert not [tag for tag in tags if tag.startswith("hparam")]  # those are in HPARAMS only
     best = events.Scalars("reward/best")
@@ -72,6 +73,9 @@ def test_outputs_and_tensorboard_scalars(finished_run):
     assert [e.value for e in best] == pytest.approx(history["best"], rel=1e-6)
     mean = events.Scalars("reward/mean")
     assert all(m.value <= b.value + 1e-6 for m, b in zip(mean, best, strict=True))
+    skipped = [e.value for e in events.Scalars("search/clusterings_skipped")]
+    assert [e.step for e in events.Scalars("search/clusterings_skipped")] == history["trials"]
+    assert skipped == sorted(skipped) and skipped[-1] == 0  # a healthy run skips none
     counts = [e.value for e in events.Scalars("search/policies")]
     assert counts == history["num_policies"] and min(counts) >= 1
     assert 0.0 <= results["best_reward"] <= 1.0

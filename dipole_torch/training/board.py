@@ -38,6 +38,7 @@ LAYOUT = {
     "search": {
         "policies": ["Multiline", ["search/policies"]],
         "relative exploration std (log10)": ["Multiline", ["search/log10_exploration_std"]],
+        "clusterings skipped": ["Multiline", ["search/clusterings_skipped"]],
     },
 }
 
@@ -92,6 +93,11 @@ class Board:
         log_std = math.log10(max(row["exploration_std"], 1e-30))
         self.writer.add_scalar("search/log10_exploration_std", log_std, step)
         self.writer.add_histogram("search/rewards", rewards.float(), step)
+        skipped = getattr(optimizer, "clusterings_skipped", None)  # (DIPOLE's; not PoWER's)
+        if skipped is not None:
+            # Clusterings that failed numerically and were skipped: a count that keeps rising
+            # says the DP mixture no longer runs (see docs/reliability.md).
+            self.writer.add_scalar("search/clusterings_skipped", skipped, step)
         return row
 
     def figure(self, tag: str, figure, step: int) -> None:
