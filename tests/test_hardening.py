@@ -55,6 +55,22 @@ def same_state(a, b) -> bool:
     return a == b
 
 
+def offset_sphere(theta: Tensor) -> Tensor:
+    """``[B]`` −1e6 − |θ|²: returns a function of θ, far from zero (mapped by their range)."""
+    return -1e6 - theta.square().sum(-1)
+
+
+def assert_resumes_identically(opt, copy, reward, iterations: int) -> None:
+    """Load ``opt``'s state into ``copy``; both then ask the same and end in the same state."""
+    copy.load_state_dict(opt.state_dict())
+    for _ in range(iterations):
+        a, b = opt.ask(), copy.ask()
+        assert torch.equal(a, b)
+        opt.tell(a, reward(a))
+        copy.tell(b, reward(b))
+    assert same_state(opt.state_dict(), copy.state_dict())
+
+
 def finite_policies(opt) -> bool:
     return bool(opt.policy_means.isfinite().all() and opt.policy_covariances.isfinite().all())
 
@@ -352,14 +368,7 @@ def test_a_checkpoint_round_trip_continues_identically():
     for _ in range(4):
         theta = opt.ask()
         opt.tell(theta, quadratic(theta))
-    copy = build("dipole", seed=99)
-    copy.load_state_dict(opt.state_dict())
-    for _ in range(4):
-        a, b = opt.ask(), copy.ask()
-        assert torch.equal(a, b)
-        opt.tell(a, quadratic(a))
-        copy.tell(b, quadratic(b))
-    assert same_state(opt.state_dict(), copy.state_dict())
+    assert_resumes_identically(opt, build("dipole", seed=99), quadratic, 4)
     assert math.isfinite(opt.best()[1])
 
 
@@ -371,9 +380,6 @@ def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpo
     from dipole_torch.prior import NormalInverseWishartPrior
     from dipole_torch.validation import check_well_conditioned
 
-    def sphere(theta: Tensor) -> Tensor:
-        return -1e6 - theta.square().sum(-1)
-
     def make(seed):
         return Dipole(torch.full((3,), -0.2, dtype=F64), torch.eye(3, dtype=F64),
                       regularization=0.0, retire_std=0.0,
@@ -382,18 +388,11 @@ def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpo
     opt = make(0)
     while opt.trials < 800:
         theta = opt.ask()
-        opt.tell(theta, sphere(theta))
+        opt.tell(theta, offset_sphere(theta))
     prior = opt.dp_state.prior
     with pytest.raises(ValueError, match="too close to singular"):
         check_well_conditioned(prior.scale, "scale")  # what a user-given prior must pass
-    copy = make(99)
-    copy.load_state_dict(opt.state_dict())
-    for _ in range(10):
-        a, b = opt.ask(), copy.ask()
-        assert torch.equal(a, b)
-        opt.tell(a, sphere(a))
-        copy.tell(b, sphere(b))
-    assert same_state(opt.state_dict(), copy.state_dict())
+    assert_resumes_identically(opt, make(99), offset_sphere, 10)
     # Restoring still refuses what is malformed, naming it.
     state = prior.state_dict()
     with pytest.raises(ValueError, match="scale"):
@@ -423,9 +422,6 @@ def test_a_gibbs_update_that_rounds_h_off_positive_definite_fails_its_sweep_not_
 
     monkeypatch.setattr(NormalInverseWishartPrior, "updated", counting_update)
 
-    def flat_top(theta: Tensor) -> Tensor:
-        return -1e6 - theta.square().sum(-1)
-
     def make(seed):
         return Dipole(torch.full((1,), 0.38, dtype=F64), torch.eye(1, dtype=F64),
                       importance="global", explore=0.0, hill_valley=False, max_policies=2,
@@ -436,20 +432,14 @@ def test_a_gibbs_update_that_rounds_h_off_positive_definite_fails_its_sweep_not_
     opt = make(703)
     while opt.trials < 1000:
         theta = opt.ask()
-        opt.tell(theta, flat_top(theta))
+        opt.tell(theta, offset_sphere(theta))
         prior = opt.dp_state.prior
         for name in ("scale", "mean_covariance"):
             _, info = torch.linalg.cholesky_ex(getattr(prior, name))
             assert int(info) == 0, f"the chain kept an H whose {name} does not factorise"
     assert refused, "the run no longer reaches a refused update of H: choose another seed"
     assert opt.clusterings_skipped > 0
-    copy = make(99)
-    copy.load_state_dict(opt.state_dict())
-    for _ in range(5):
-        a, b = opt.ask(), copy.ask()
-        assert torch.equal(a, b)
-        opt.tell(a, flat_top(a))
-        copy.tell(b, flat_top(b))
+    assert_resumes_identically(opt, make(99), offset_sphere, 5)
 
 
 def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
