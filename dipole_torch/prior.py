@@ -215,7 +215,7 @@ class NormalInverseWishartPrior:
         # of ending the chain with an H that every later clustering would fail on.
         scale_tril, scale_info = torch.linalg.cholesky_ex(scale)
         mean_tril, mean_info = torch.linalg.cholesky_ex(mean_covariance)
-        if bool((scale_info != 0) | (mean_info != 0)):
+        if bool(scale_info | mean_info):  # (info: 0, or the order of the failing minor)
             raise torch.linalg.LinAlgError(
                 "the Gibbs update of H drew a scale Ψ0 or a mean covariance Σ0 that is not "
                 "positive definite in float64"
