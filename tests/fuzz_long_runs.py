@@ -1,0 +1,180 @@
+"""Long runs of ``Dipole`` with random options on awkward landscapes, checkpointed and
+restored three times a run: a search for the failures that only a long, successful run meets.
+
+    python tests/fuzz_long_runs.py --seeds 100 400           # seeds 100 ... 399
+    python tests/fuzz_long_runs.py --seeds 703 704 --budget 600   # one case again
+
+Not part of the test suite (a case runs 1000-6000 trials; the whole range takes hours): the
+cases it found are tests of their own (``tests/test_hardening.py``, ``test_exploration.py``).
+Each seed draws, from its own ``random.Random``:
+
+* a dimension D in {1, 2, 3, 5, 9, 12} and a landscape: Gaussian peaks, a plateau, a needle,
+  peaks scaled by 1e150 or 1e-150, −1e6 − |θ|², a constant, steps, a sphere, or a narrow
+  cone 1 − √|θ − c|;
+* half the time, a random value of every option (``DipoleOptions``), and in 15 % of the cases
+  the paper's variant instead of the default one;
+* 1000, 3000 or 6000 trials, a box (−4, 4) or none, Σ_start = s·I with s in {1e-3, 1, 1e3};
+* checkpoints (``state_dict`` through ``torch.save``) at a quarter, half and three quarters of
+  the trials, each loaded into a new ``Dipole`` built with another generator, which goes on.
+
+A case fails when it raises anything but the clear errors for inputs that the options refuse
+(``ValueError``/``TypeError`` of an option set, returns that ``reward_range="positive"``
+refuses), asks an empty or non-finite batch, or ends with non-finite policy means. Printed:
+one line per failure (seed, error, the case's settings, the traceback's end), cases slower
+than a minute, and the count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import random
+import time
+import traceback
+
+import torch
+
+from dipole_torch import Dipole
+
+LANDSCAPES = ("multi", "plateau", "needle", "huge", "tiny", "negative", "constant", "steps",
+              "sphere", "narrow")  # fmt: skip
+
+
+def landscape(rng: random.Random, d: int):
+    """A landscape ``[B, D] -> [B]`` and its name."""
+    kind = rng.choice(LANDSCAPES)
+    centres = torch.tensor(
+        [[rng.uniform(-3, 3) for _ in range(d)] for _ in range(rng.randint(1, 6))],
+        dtype=torch.float64,
+    )
+
+    def peaks(theta):
+        return torch.exp(-0.5 * torch.cdist(theta, centres).square()).amax(-1)
+
+    def distance(theta):
+        return torch.cdist(theta, centres[:1]).squeeze(-1)
+
+    return kind, {
+        "multi": peaks,
+        "plateau": lambda theta: peaks(theta).clamp(max=0.3),
+        "needle": lambda theta: torch.exp(-1e3 * distance(theta)),
+        "huge": lambda theta: 1e150 * peaks(theta),
+        "tiny": lambda theta: 1e-150 * peaks(theta),
+        "negative": lambda theta: -1e6 - theta.square().sum(-1),
+        "constant": lambda theta: torch.full(theta.shape[:1], 3.0, dtype=theta.dtype),
+        "steps": lambda theta: torch.floor(4 * peaks(theta)),
+        "sphere": lambda theta: -theta.square().sum(-1),
+        "narrow": lambda theta: 1 - distance(theta).sqrt(),
+    }[kind]
+
+
+def options(rng: random.Random) -> tuple[str, dict]:
+    """``("default" | "paper", option changes)``."""
+    changes = {}
+    if rng.random() < 0.5:
+        changes = dict(
+            importance=rng.choice(["policy", "global"]),
+            exploration=rng.choice(["success", "clustering"]),
+            explore=rng.choice([0.0, 0.05, 0.5, 1.0]),
+            hill_valley=rng.choice([True, False]),
+            pair_points=rng.choice([1, 3]),
+            max_policies=rng.choice([None, 1, 2, 8]),
+            max_sampled=rng.choice([None, 1, 4]),
+            retire_std=rng.choice([0.0, 1e-3, 1e-1]),
+            refine=rng.choice([0.0, 0.1, 0.9]),
+            refine_share=rng.choice([0.01, 0.2, 0.99]),
+            merge_radius=rng.choice([0.0, 1.0, 10.0]),
+            settle=rng.choice([None, 1, 3]),
+            M=rng.choice([1, 5, 10]),
+            alpha=rng.choice([0.01, 1.0, 100.0]),
+            m=rng.choice([1, 10]),
+            regularization=rng.choice([0.0, 1e-2, 1.0]),
+            reward_weighted=rng.choice([True, False]),
+            restarts=rng.choice(["box", "start"]),
+            auxiliary=rng.choice(["fresh", "reuse"]),
+        )
+    return ("paper" if rng.random() < 0.15 else "default"), changes
+
+
+def refused_input(error: Exception) -> bool:
+    """The clear errors for returns that ``reward_range="positive"`` (the paper's default)
+    refuses: what a user is told to change, not a failure of the optimizer."""
+    return isinstance(error, ValueError) and "reward_range='positive'" in str(error)
+
+
+def run_case(seed: int, budget: int | None = None) -> str | None:
+    """Run one case; ``None`` if it went well, else what went wrong."""
+    rng = random.Random(seed)
+    d = rng.choice([1, 2, 3, 5, 9, 12])
+    kind, reward = landscape(rng, d)
+    variant, changes = options(rng)
+    trials = rng.choice([1000, 3000, 6000]) if budget is None else budget
+    box = rng.random() < 0.4
+    bounds = (-4.0 * torch.ones(d, dtype=torch.float64), 4.0 * torch.ones(d, dtype=torch.float64))
+    sigma = rng.choice([1e-3, 1.0, 1e3]) * torch.eye(d, dtype=torch.float64)
+    theta0 = torch.full((d,), rng.uniform(-1, 1), dtype=torch.float64)
+    if variant == "paper":
+        changes = {k: v for k, v in changes.items() if k in ("M", "alpha", "m", "regularization",
+                                                             "settle")}  # fmt: skip
+        if kind in ("negative", "sphere", "narrow"):
+            changes["reward_range"] = None
+    case = (f"d={d} landscape={kind} variant={variant} trials={trials} box={box} "
+            f"sigma={float(sigma[0, 0]):g} options={changes}")  # fmt: skip
+
+    def build(generator_seed: int) -> Dipole:
+        make = Dipole.paper if variant == "paper" else Dipole
+        generator = torch.Generator().manual_seed(generator_seed)
+        return make(theta0, sigma, bounds=bounds if box else None, generator=generator, **changes)
+
+    try:
+        opt = build(seed)
+    except (ValueError, TypeError):
+        return None  # an option set the options refuse, with their message
+    checkpoints = [trials // 4, trials // 2, 3 * trials // 4]
+    try:
+        while opt.trials < trials:
+            theta = opt.ask()
+            if theta.shape[0] == 0 or not torch.isfinite(theta).all():
+                return f"an empty or non-finite ask at {opt.trials} trials | {case}"
+            opt.tell(theta, reward(theta))
+            if checkpoints and opt.trials >= checkpoints[0]:
+                checkpoints.pop(0)
+                buffer = io.BytesIO()
+                torch.save(opt.state_dict(), buffer)
+                buffer.seek(0)
+                restored = build(seed + 1)
+                restored.load_state_dict(torch.load(buffer, weights_only=False))
+                opt = restored
+        if opt.policy_means.numel() and not torch.isfinite(opt.policy_means).all():
+            return f"non-finite policy means | {case}"
+        opt.best()
+        opt.result  # noqa: B018 (its views must build)
+    except Exception as error:  # noqa: BLE001 (every other error is a finding)
+        if refused_input(error):
+            return None
+        return (f"{type(error).__name__}: {str(error)[:300]} | {case}\n"
+                + traceback.format_exc()[-1500:])  # fmt: skip
+    return None
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs=2, default=[0, 20], metavar=("FIRST", "END"))
+    parser.add_argument("--budget", type=int, default=None, help="trials a case (default: drawn)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    failures = 0
+    for seed in range(*args.seeds):
+        start = time.perf_counter()
+        finding = run_case(seed, args.budget)
+        seconds = time.perf_counter() - start
+        if seconds > 60:
+            print(f"seed {seed}: slow, {seconds:.0f} s", flush=True)
+        if finding:
+            failures += 1
+            print(f"seed {seed}: {finding}", flush=True)
+    print(f"{args.seeds[1] - args.seeds[0]} cases, {failures} failures")
+
+
+if __name__ == "__main__":
+    main()
