@@ -82,6 +82,7 @@ import importlib.metadata
 import json
 import math
 import multiprocessing
+import platform
 import random
 import sys
 import time
@@ -705,7 +706,7 @@ def write_report(path: Path, config: dict, wall: float, summary: dict, cases: li
     """The JSON report: ``config`` (with the peers' versions), wall time, summary, cases."""
     versions = {p: _version(p) for p in ("torch", "cma", "pynmmso")}
     report = {
-        "config": config | {"versions": versions},
+        "config": config | {"versions": versions, "machine": machine()},
         "wall_seconds": round(wall, 1),
         "summary": summary,
         "cases": cases,
@@ -756,6 +757,18 @@ def kept_cases(path: Path, grid: dict, methods: Sequence[str]) -> list:
                 f"{value}: run every method instead"
             )
     return [c for c in report["cases"] if c["method"] not in methods]
+
+
+def machine() -> dict[str, str | int]:
+    """What the runs' floating-point results depend on beyond the code and the seeds: the
+    architecture, the CPU kernels torch dispatches to (``AVX512``, ``AVX2``, …) and its
+    threads. Long runs of the same seed on another CPU diverge once a rounding differs (see
+    docs/benchmarks/index.md, *Reproducing the numbers*)."""
+    return {
+        "architecture": platform.machine(),
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "torch_threads": torch.get_num_threads(),
+    }
 
 
 def _version(package: str) -> str | None:

@@ -251,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS if m in args.methods]
-    from bench_multioptima import run_tasks
+    from bench_multioptima import machine, run_tasks
 
     tasks = [(m, s, budgets) for m in methods for s in range(args.seeds)]
 
@@ -281,7 +281,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             versions[package] = None
     report = {
         "config": {"seeds": args.seeds, "budgets": budgets, "methods": methods,
-                   "levels": list(LEVELS), "versions": versions,
+                   "levels": list(LEVELS), "versions": versions, "machine": machine(),
                    "qd_batch": QD_BATCH, "qd_emitters": QD_EMITTERS,
                    "map_elites_sigma": MAP_ELITES_SIGMA,
                    "cma_mae_learning_rate": CMA_MAE_LEARNING_RATE},
