@@ -3,6 +3,7 @@ restored three times a run: a search for the failures that only a long, successf
 
     python tests/fuzz_long_runs.py --seeds 100 400           # seeds 100 ... 399
     python tests/fuzz_long_runs.py --seeds 703 704 --budget 600   # one case again
+    python tests/fuzz_long_runs.py --seeds 2000 3000 --minutes 30 # as many as fit
 
 Not part of the test suite (a case runs 1000-6000 trials; the whole range takes hours): the
 cases it found are tests of their own (``tests/test_hardening.py``, ``test_exploration.py``).
@@ -161,10 +162,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs=2, default=[0, 20], metavar=("FIRST", "END"))
     parser.add_argument("--budget", type=int, default=None, help="trials a case (default: drawn)")
+    parser.add_argument("--minutes", type=float, default=None, help="start no case after this")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    failures = 0
+    failures = cases = 0
+    began = time.perf_counter()
     for seed in range(*args.seeds):
+        if args.minutes is not None and time.perf_counter() - began > 60 * args.minutes:
+            break
+        cases += 1
         start = time.perf_counter()
         finding = run_case(seed, args.budget)
         seconds = time.perf_counter() - start
@@ -173,7 +179,7 @@ def main() -> None:
         if finding:
             failures += 1
             print(f"seed {seed}: {finding}", flush=True)
-    print(f"{args.seeds[1] - args.seeds[0]} cases, {failures} failures")
+    print(f"{cases} cases (seeds {args.seeds[0]}-{args.seeds[0] + cases - 1}), {failures} failures")
 
 
 if __name__ == "__main__":
