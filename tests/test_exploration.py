@@ -1,6 +1,7 @@
 """Exploration (dipole_torch.mechanisms.exploration): the success rule's constants and
 updates, and a new policy's starting covariance."""
 
+import pytest
 import torch
 from test_optimizer import two_optima
 
@@ -79,3 +80,28 @@ def test_the_condition_floor_acts_only_on_covariances_that_lack_margin():
     eig = torch.linalg.eigvalsh(whitened)
     assert eig.min() > 0 and eig.max() / eig.min() < 3 * MAX_CONDITION
     assert torch.equal(bounded_condition(opt, fine[None]), fine[None])
+
+
+def test_a_policy_that_never_retires_keeps_a_floor_under_its_exploration():
+    """With ``retire_std=0`` a converged policy fails on and on and the success rule shrinks
+    its covariance at every failure; it went on to underflow (variances of 1e-323, found
+    at trial 4543 by the fuzz of long runs) and the next ask failed. It now stops at
+    ``MIN_RELATIVE_STD`` of Σ_start's std, reached here by trial ~700 (1e-15·0.9^300 at
+    trial 1000 without the floor), and the policy goes on sampling."""
+    from dipole_torch.mechanisms.exploration import MIN_RELATIVE_STD
+
+    def peak(theta: torch.Tensor) -> torch.Tensor:
+        return torch.exp(-(theta - 0.5).square().sum(-1))
+
+    opt = Dipole(torch.zeros(2, dtype=torch.float64), 1e-3 * torch.eye(2, dtype=torch.float64),
+                 retire_std=0.0, max_policies=1, explore=0.0,
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    while opt.trials < 1000:
+        theta = opt.ask()
+        assert torch.isfinite(theta).all()
+        opt.tell(theta, peak(theta))
+    relative = opt.relative_std()
+    assert bool(opt.active.all())  # never retired
+    assert MIN_RELATIVE_STD > 0
+    assert float(relative.min()) == pytest.approx(MIN_RELATIVE_STD, rel=1e-6, abs=0.0)
+    assert float((opt.policy_means - 0.5).abs().max()) < 1e-6  # it did converge

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MAX_CONDITION",
+    "MIN_RELATIVE_STD",
     "PosteriorExploration",
     "SuccessRule",
     "SuccessRuleParameters",
@@ -98,10 +99,12 @@ class SuccessRule:
     the rank-one term: Σ ← (1 − c_cov) Σ + c_cov p pᵀ. After every sample the running
     success rate p̄ ← (1 − c_p) p̄ + c_p·[success] scales the covariance by
     exp((p̄ − p_t) / (d (1 − p_t)))², never beyond Σ_start (a policy that keeps failing while
-    it grows would otherwise turn into random search). Exploration then shrinks
-    geometrically near an optimum and grows on a slope, and the covariance learns the
-    optimum's shape. The covariance is kept from clustering to clustering. Its condition
-    number is held near ``MAX_CONDITION`` (``bounded_condition``; not in Igel et al.).
+    it grows would otherwise turn into random search) nor below ``MIN_RELATIVE_STD`` of it
+    (a policy that never retires would shrink it to zero; not in Igel et al.). Exploration
+    then shrinks geometrically near an optimum and grows on a slope, and the covariance
+    learns the optimum's shape. The covariance is kept from clustering to clustering. Its
+    condition number is held near ``MAX_CONDITION`` (``bounded_condition``; not in Igel et
+    al.).
 
     Σ here is Igel et al.'s σ²C in one matrix, so p is their σ·p_c: it is scaled with the
     covariance's scale at every sample. (Left in absolute units, a path from steps of
@@ -153,8 +156,11 @@ class SuccessRule:
         success = (1 - c) * rows(policies.success) + c * succeeded.to(DTYPE)
         p_t = constants.target_success
         factor = torch.exp((success - p_t) / (constants.damping * (1 - p_t)))
-        relative = search.relative_std(covs)
-        factor = torch.minimum(factor, 1.0 / relative.clamp_min(1e-300))
+        # Never beyond Σ_start, and never below MIN_RELATIVE_STD of it: without retirement
+        # (retire_std=0) a converged policy fails on and on, and its covariance shrank
+        # geometrically until it underflowed to zero and the next ask failed.
+        relative = search.relative_std(covs).clamp_min(1e-300)
+        factor = torch.clamp(factor, MIN_RELATIVE_STD / relative, 1.0 / relative)
         paths = paths * factor[:, None]  # in the scale's units, as Σ
         covs = covs * factor[:, None, None] ** 2
         if every:
@@ -175,6 +181,11 @@ class SuccessRule:
         spread = whitened.diagonal(dim1=-2, dim2=-1).mean(-1).clamp(max=1.0)
         return spread[..., None, None] * search.sigma_start
 
+
+# The smallest exploration std the success rule keeps, relative to Σ_start's (its largest
+# ratio over the axes): a few float64 ulps of θ at Σ_start's scale, below which samples
+# round to the mean; far below the finest threshold a wake refines to (1e-12).
+MIN_RELATIVE_STD = 1e-15
 
 # The largest condition number a policy's exploration covariance may reach, in Σ_start's
 # per-axis units (pycma stops a run at 1e14; float64 rounding makes a covariance singular
