@@ -251,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS if m in args.methods]
-    from bench_multioptima import machine, run_tasks
+    from bench_multioptima import _version, machine, run_tasks
 
     tasks = [(m, s, budgets) for m in methods for s in range(args.seeds)]
 
@@ -271,14 +271,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     text, summary = summarize(cases, methods, budgets)
     print(text)
     print(f"wall time {wall:.1f} s on {args.workers} process(es)")
-    import importlib.metadata
-
-    versions = {}
-    for package in ("torch", "ribs"):
-        try:
-            versions[package] = importlib.metadata.version(package)
-        except importlib.metadata.PackageNotFoundError:
-            versions[package] = None
+    versions = {package: _version(package) for package in ("torch", "ribs")}
     report = {
         "config": {"seeds": args.seeds, "budgets": budgets, "methods": methods,
                    "levels": list(LEVELS), "versions": versions, "machine": machine(),
