@@ -222,8 +222,7 @@ class NormalInverseWishartPrior:
             )
         # The rest of __post_init__'s validation (a few more factorisations) would run once
         # per sweep for nothing.
-        prior = object.__new__(NormalInverseWishartPrior)
-        prior.__dict__.update(
+        prior = NormalInverseWishartPrior._unchecked(
             mean_loc=mean_loc,
             mean_covariance=mean_covariance,
             df=self.df,
@@ -285,7 +284,14 @@ class NormalInverseWishartPrior:
         names = {field.name for field in fields(cls)}
         if set(state) != names:
             raise ValueError(f"a prior's state dict holds {sorted(names)}; got {sorted(state)}")
-        prior = object.__new__(cls)
-        prior.__dict__.update(state)
+        prior = cls._unchecked(**state)
         prior._check(well_conditioned=False)
+        return prior
+
+    @classmethod
+    def _unchecked(cls, **values) -> NormalInverseWishartPrior:
+        """A prior with these field values, without ``__post_init__``'s validation (whose
+        callers check what they need themselves)."""
+        prior = object.__new__(cls)
+        prior.__dict__.update(values)
         return prior
