@@ -21,8 +21,9 @@ def two_hills(theta: torch.Tensor) -> torch.Tensor:
     return torch.maximum(1.0 - 0.08 * x.abs(), 0.9 - 10.0 * (x - 3.0).abs())
 
 
-def with_two_policies(pair_points: int) -> Dipole:
-    """A started DIPOLE whose two active policies have best samples 0 and 3.005."""
+def with_two_policies(pair_points: int, std: float = 2.0) -> Dipole:
+    """A started DIPOLE whose two active policies have best samples 0 and 3.005 and explore
+    with ``std`` (2: each reaches the other's best sample, 1.5 stds away)."""
     opt = Dipole(
         torch.tensor([1.5], dtype=DTYPE),
         torch.tensor([[1.0]], dtype=DTYPE),
@@ -32,7 +33,7 @@ def with_two_policies(pair_points: int) -> Dipole:
     theta = opt.ask()
     opt.tell(theta, two_hills(theta))
     means = torch.tensor([[0.0], [3.005]], dtype=DTYPE)
-    opt.policy_set.reset(means, torch.full((2, 1, 1), 0.01, dtype=DTYPE))
+    opt.policy_set.reset(means, torch.full((2, 1, 1), std**2, dtype=DTYPE))
     opt.archive.replace(means.clone(), two_hills(means), torch.arange(2))
     return opt
 
@@ -50,6 +51,20 @@ def test_three_probes_find_the_valley_near_the_worse_policy():
 
 def test_the_midpoint_alone_misses_it_and_drops_the_worse_policy():
     opt = with_two_policies(pair_points=1)
+    judge_pairs(opt)
+    assert opt.policy_means[:, 0].tolist() == [0.0]
+
+
+def test_policies_beyond_each_others_reach_are_not_probed_as_a_pair():
+    # 30 exploration stds apart (std 0.1): a probe above the worse one would only show a
+    # ridge joining the two hills, not one hill. Both stay, and no trial goes to the probe.
+    opt = with_two_policies(pair_points=1, std=0.1)
+    judge_pairs(opt)
+    assert opt.vetting.pair_probes.shape[0] == 0
+    assert opt.policy_means[:, 0].tolist() == [0.0, 3.005]
+    # Within reach of one of them (the other still far from it), they are probed.
+    opt = with_two_policies(pair_points=1, std=0.1)
+    opt.policy_set.covariances = torch.tensor([[[4.0]], [[0.01]]], dtype=DTYPE)
     judge_pairs(opt)
     assert opt.policy_means[:, 0].tolist() == [0.0]
 

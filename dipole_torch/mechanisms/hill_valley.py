@@ -9,7 +9,8 @@ A probe worse than both ends shows a valley between them. Two uses:
   a retired policy with a better sample than that policy's best replaces it: the retired
   policy stopped short of the top.
 * Every fourth clustering, each active policy is probed against its nearest neighbour
-  (``pair_points`` probes along the way); of two on one hill the worse goes.
+  (``pair_points`` probes along the way) when one of the two explores within
+  ``PAIR_REACH`` stds of the other's best sample; of two on one hill the worse goes.
 
 Probes are evaluated at the next ask (owner ``PROBE``: they never
 enter the archive) and judged at the tell after it. ``NoVetting`` is the "off" case.
@@ -24,11 +25,20 @@ import torch
 from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
+from dipole_torch.mechanisms.retirement import exploration_distance
 
 if TYPE_CHECKING:
     from dipole_torch.search import PolicySearch, TellBatch
 
 __all__ = ["HillValley", "NoVetting", "make_vetting"]
+
+# Two policies are probed as a pair only when one explores within this many of its stds of
+# the other's best sample. Between distant policies a probe that shows no valley is no
+# evidence of one hill: a policy still far below its top sits under a ridge that joins its
+# hill to the next one (the viapoint task's routes are joined by ridges at 0.8-0.9 of the
+# top, and the pair test dropped new routes at 0.83 against policies at 0.98). Distant
+# duplicates come within reach as they climb, or are merged (``merge_radius``).
+PAIR_REACH = 3.0
 
 
 class NoVetting:
@@ -237,7 +247,8 @@ class HillValley(NoVetting):
 
     # ------------------------------------------------------------------ pairs
     def _probe_pairs(self, search: PolicySearch) -> None:
-        """Queue probes between every active policy and the policy nearest to it: two
+        """Queue probes between every active policy and the policy nearest to it, when one
+        of the two explores within ``PAIR_REACH`` stds of the other's best sample: two
         policies on one hill are one optimum.
 
         Each pair's ``pair_points`` probes lie at i/(pair_points + 1) of the way between the
@@ -252,6 +263,13 @@ class HillValley(NoVetting):
         a = search.active.nonzero().squeeze(-1)
         b = distance[a].argmin(-1)
         pairs = torch.stack((torch.minimum(a, b), torch.maximum(a, b)), -1).unique(dim=0)
+        first, second = pairs[:, 0], pairs[:, 1]
+        gap = (best[second] - best[first])[:, None, :]  # [P, 1, D]
+        reach = torch.minimum(
+            exploration_distance(search, gap, first)[:, 0],
+            exploration_distance(search, -gap, second)[:, 0],
+        )
+        pairs = pairs[reach < PAIR_REACH]
         self.pair_index = pairs
         n = self.pair_points
         t = torch.arange(1, n + 1, dtype=DTYPE, device=search.device) / (n + 1)
