@@ -108,9 +108,11 @@ FOUND_RADIUS = 0.1  # in units of the peak's width
 FOUND_LEVEL = 0.99  # fraction of the height h above the offset b
 METHODS = ("DIPOLE", "DIPOLE (paper)", "PoWER", "IPOP-CMA-ES", "NMMSO", "random search")
 # Run when asked for (--methods): DIPOLE with every clustering running all its sweeps
-# (``settle=None``; the default ends one once its partition settles), to measure that
-# option's effect beside the defaults.
-OPT_IN = ("DIPOLE (all sweeps)",)
+# (``settle=None``; the default ends one once its partition settles), and DIPOLE with the
+# options for covering alternatives (``accept_unjudged=True, max_sampled=None``, as
+# bench_viapoint_qd.py's "DIPOLE (coverage)"), to measure each option's effect beside the
+# defaults.
+OPT_IN = ("DIPOLE (all sweeps)", "DIPOLE (coverage)")
 DIMS = (2, 5, 10)
 KS = (2, 4, 8)
 SEEDS = 10
@@ -301,6 +303,10 @@ def run_dipole(
 
 def run_dipole_all_sweeps(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
     return run_dipole(landscape, budgets, seed, settle=None)
+
+
+def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
+    return run_dipole(landscape, budgets, seed, accept_unjudged=True, max_sampled=None)
 
 
 def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
@@ -519,6 +525,7 @@ RUNNERS: dict[str, Callable[[Landscape, Sequence[int], int], Snapshots]] = {
     "DIPOLE": run_dipole,
     "DIPOLE (paper)": run_dipole_paper,
     "DIPOLE (all sweeps)": run_dipole_all_sweeps,
+    "DIPOLE (coverage)": run_dipole_coverage,
     "PoWER": run_power,
     "IPOP-CMA-ES": run_ipop_cmaes,
     "NMMSO": run_nmmso,
@@ -793,8 +800,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     methods = [m for m in METHODS + OPT_IN if m in args.methods]
     # Slowest first (DIPOLE clusters, PoWER tells 2000 times; high D costs more), so the last
     # tasks are short and the processes finish together.
-    cost = {"DIPOLE": 0, "DIPOLE (paper)": 0, "DIPOLE (all sweeps)": 0, "PoWER": 1, "NMMSO": 2,
-            "IPOP-CMA-ES": 3}  # fmt: skip
+    cost = {"DIPOLE": 0, "DIPOLE (paper)": 0, "DIPOLE (all sweeps)": 0, "DIPOLE (coverage)": 0,
+            "PoWER": 1, "NMMSO": 2, "IPOP-CMA-ES": 3}  # fmt: skip
     tasks = sorted(
         (
             (d, k, s, m, budgets)

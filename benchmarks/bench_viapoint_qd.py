@@ -17,6 +17,8 @@ that route with return ≥ r (r = 0.9, the paper's count, and 0.95). Returned so
   no reward range, n0 = 30), evaluated without exploration noise as in
   ``reproduce_viapoint.py`` (these evaluations are not charged). DIPOLE is never told
   routes: it sees returns only.
+* **DIPOLE (coverage)**: the same with the options a user sets to cover alternatives rather
+  than converge on each (``COVERAGE``: ``accept_unjudged=True``, ``max_sampled=None``).
 * **MAP-Elites** and **CMA-MAE** (pyribs 0.12): the elites of an archive with one cell per
   route, **the route given as the behaviour descriptor: an oracle** that DIPOLE does not
   get (it would not exist for a task whose alternatives are unknown). The elites are
@@ -53,7 +55,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # (lockstep, reproduce_viapoint)
 
 ROOT = Path(__file__).resolve().parents[1]
-METHODS = ("DIPOLE", "MAP-Elites", "CMA-MAE")
+# (Appended, not inserted: the peers' seeds derive from their index.)
+METHODS = ("DIPOLE", "MAP-Elites", "CMA-MAE", "DIPOLE (coverage)")
+# ``train.py`` overrides of "DIPOLE (coverage)".
+COVERAGE = ("algo.optimizer.accept_unjudged=true", "algo.optimizer.max_sampled=null")
+SHOWN = ("DIPOLE", "DIPOLE (coverage)", "MAP-Elites", "CMA-MAE")  # the tables' order
 BUDGETS = (300, 1000)
 LEVELS = (0.9, 0.95)
 SEEDS = 10
@@ -88,11 +94,11 @@ def _covered(routes, rewards) -> dict[str, float]:
     return best
 
 
-def run_dipole(seed: int, budgets: Sequence[int]) -> dict[int, dict]:
+def run_dipole(seed: int, budgets: Sequence[int], overrides: Sequence[str] = ()) -> dict[int, dict]:
     from reproduce_viapoint import make_optimizer
 
     task, n0 = _task()
-    opt = make_optimizer("DIPOLE", task, n0, seed)
+    opt = make_optimizer("DIPOLE", task, n0, seed, overrides)
     snapshots = {}
     top = budgets[-1]
     while True:
@@ -185,6 +191,8 @@ def run_case(method: str, seed: int, budgets: Sequence[int]) -> dict:
     start = time.perf_counter()
     if method == "DIPOLE":
         per_budget = run_dipole(seed, budgets)
+    elif method == "DIPOLE (coverage)":
+        per_budget = run_dipole(seed, budgets, COVERAGE)
     else:
         per_budget = run_qd(method, seed, budgets)
     for b, v in per_budget.items():
@@ -250,7 +258,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
-    methods = [m for m in METHODS if m in args.methods]
+    methods = [m for m in SHOWN if m in args.methods]
     from bench_multioptima import _version, machine, run_tasks
 
     tasks = [(m, s, budgets) for m in methods for s in range(args.seeds)]
@@ -266,7 +274,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         return f"{tag}: {found} routes ≥ {LEVELS[0]} ({case['seconds']:.0f} s)"
 
     cases, wall = run_tasks(_worker, tasks, args.workers, progress)
-    order = {m: i for i, m in enumerate(METHODS)}
+    order = {m: i for i, m in enumerate(SHOWN)}
     cases.sort(key=lambda c: (order[c["method"]], c["seed"]))
     text, summary = summarize(cases, methods, budgets)
     print(text)

@@ -127,7 +127,7 @@ class Dipole(PolicySearch):
         self.scouting = Scouting(options.explore, options.max_sampled, options.restarts)
         self.vetting = make_vetting(
             options.hill_valley, d, self.device, options.pair_points, options.max_policies,
-            self.cluster_every,
+            self.cluster_every, options.accept_unjudged,
         )  # fmt: skip
         self.retirement = Retirement(
             options.retire_std, options.merge_radius, self.exploration.keeps_covariance,

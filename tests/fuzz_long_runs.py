@@ -94,7 +94,10 @@ def options(rng: random.Random) -> tuple[str, dict]:
             restarts=rng.choice(["box", "start"]),
             auxiliary=rng.choice(["fresh", "reuse"]),
         )
-    return ("paper" if rng.random() < 0.15 else "default"), changes
+    variant = "paper" if rng.random() < 0.15 else "default"
+    if changes and changes["hill_valley"]:  # (drawn last: earlier seeds keep their cases)
+        changes["accept_unjudged"] = rng.choice([False, True])
+    return variant, changes
 
 
 def refused_input(error: Exception) -> bool:

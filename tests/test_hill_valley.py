@@ -136,3 +136,75 @@ def test_a_retired_policy_short_of_the_top_is_replaced_by_a_better_candidate():
     vetting.judge(opt)
     assert opt.num_policies == 1 and bool(opt.active[0])
     assert torch.allclose(opt.policy_means, one)
+
+
+def two_policies_and_a_candidate(accept_unjudged: bool, candidate_std: float) -> Dipole:
+    """The two-hills DIPOLE of ``with_two_policies`` with one active policy at 0 (std 0.1)
+    and a candidate at 3.005 (return 0.85, starting std ``candidate_std``) queued and probed:
+    its midpoint probe (0.88 on the wide hill's slope) shows no valley."""
+    opt = Dipole(
+        torch.tensor([1.5], dtype=DTYPE),
+        torch.tensor([[1.0]], dtype=DTYPE),
+        accept_unjudged=accept_unjudged,
+        generator=torch.Generator().manual_seed(0),
+    )
+    theta = opt.ask()
+    opt.tell(theta, two_hills(theta))
+    zero = torch.zeros(1, 1, dtype=DTYPE)
+    opt.policy_set.reset(zero, torch.full((1, 1, 1), 0.01, dtype=DTYPE))
+    opt.archive.replace(zero.clone(), two_hills(zero), torch.zeros(1, dtype=torch.long))
+    at = torch.tensor([[3.005]], dtype=DTYPE)
+    opt.vetting.add_candidates(at, torch.full((1, 1, 1), candidate_std**2, dtype=DTYPE), at,
+                               two_hills(at))  # fmt: skip
+    opt.vetting._probe_candidates(opt)
+    opt.vetting.probe_rewards = two_hills(opt.vetting.candidate_probes)
+    assert bool(opt.vetting.probe_rewards[0] >= two_hills(at)[0])  # no valley shows
+    opt.vetting.judge(opt)
+    return opt
+
+
+def test_a_candidate_beyond_reach_that_the_probe_cannot_judge_is_accepted_on_request():
+    # 30 stds from the policy, its own start std 0.1: beyond reach both ways.
+    assert two_policies_and_a_candidate(False, 0.1).num_policies == 1  # forgotten
+    opt = two_policies_and_a_candidate(True, 0.1)
+    assert opt.policy_means[:, 0].tolist() == [0.0, 3.005]
+    # Within reach of its own start (std 2: the policy 1.5 stds away) the probe's "no
+    # valley" stands, and the candidate is forgotten.
+    assert two_policies_and_a_candidate(True, 2.0).num_policies == 1
+
+
+def test_accept_unjudged_needs_the_hill_valley_test_and_a_flag():
+    with pytest.raises(ValueError, match="accept_unjudged=True needs hill_valley=True"):
+        Dipole(torch.zeros(2, dtype=DTYPE), 1.0, hill_valley=False, accept_unjudged=True)
+    with pytest.raises((TypeError, ValueError), match="accept_unjudged"):
+        Dipole(torch.zeros(2, dtype=DTYPE), 1.0, accept_unjudged="yes")
+
+
+def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactly(tmp_path):
+    def run(opt, trials):
+        while opt.trials < trials:
+            theta = opt.ask()
+            opt.tell(theta, torch.sin(5.0 * math.pi * theta[:, 0]).pow(6))
+
+    def make():
+        return Dipole(
+            torch.tensor([0.5], dtype=DTYPE), torch.tensor([[0.25**2]], dtype=DTYPE),
+            bounds=(0.0, 1.0), accept_unjudged=True, max_sampled=None,
+            generator=torch.Generator().manual_seed(0),
+        )  # fmt: skip
+
+    whole = make()
+    run(whole, 600)
+    first = make()
+    run(first, 300)
+    torch.save(first.state_dict(), tmp_path / "opt.pt")
+    second = make()
+    second.load_state_dict(torch.load(tmp_path / "opt.pt", weights_only=False))
+    run(second, 600)
+    assert torch.equal(second.policy_means, whole.policy_means)
+    # A checkpoint from before the option's queue holds none: it loads with no candidate
+    # marked.
+    state = {k: v for k, v in first.state_dict().items() if k != "candidate_unjudged"}
+    old = make()
+    old.load_state_dict(state)
+    assert old.vetting.candidate_unjudged.shape == old.vetting.candidate_probes.shape[:1]

@@ -5,9 +5,10 @@ A probe worse than both ends shows a valley between them. Two uses:
 
 * A candidate — a clustering's new component, or a scout alone in one — becomes a policy
   only if a probe halfway between its best sample and the nearest policy's best sample
-  finds a valley (while fewer than ``max_policies`` are active). A candidate on the hill of
-  a retired policy with a better sample than that policy's best replaces it: the retired
-  policy stopped short of the top.
+  finds a valley (while fewer than ``max_policies`` are active); with ``accept_unjudged``
+  also when no valley shows but the two lie beyond each other's reach (``PAIR_REACH``). A
+  candidate on the hill of a retired policy with a better sample than that policy's best
+  replaces it: the retired policy stopped short of the top.
 * Every fourth clustering, each active policy is probed against its nearest neighbour
   (``pair_points`` probes along the way) when one of the two explores within
   ``PAIR_REACH`` stds of the other's best sample; of two on one hill the worse goes.
@@ -78,6 +79,9 @@ class HillValley(NoVetting):
             way (1: the midpoint; 3: Ursem's 1/4, 1/2, 3/4).
         max_policies: active policies at most (``None``: no limit).
         cluster_every: iterations between clusterings (pairs are probed every fourth).
+        accept_unjudged: a candidate whose probe shows no valley becomes a policy too when
+            neither it (its starting covariance) nor the policy it was probed against
+            explores within ``PAIR_REACH`` stds of the other's best sample.
     """
 
     vets_new_policies = True
@@ -90,6 +94,7 @@ class HillValley(NoVetting):
         "candidate_partners",
         "candidate_samples",
         "candidate_rewards",
+        "candidate_unjudged",
         "pair_index",
         "pair_probes",
     )
@@ -101,7 +106,9 @@ class HillValley(NoVetting):
         pair_points: int,
         max_policies: int | None,
         cluster_every: int,
+        accept_unjudged: bool = False,
     ):
+        self.accept_unjudged = bool(accept_unjudged)
         self.pair_points = int(pair_points)
         self.max_policies = max_policies
         self.cluster_every = int(cluster_every)
@@ -118,6 +125,8 @@ class HillValley(NoVetting):
         self.candidate_probes = vector
         self.candidate_thresholds = scalar
         self.candidate_partners = torch.empty(0, dtype=torch.long, device=device)
+        # (accept_unjudged) which probed candidates lie beyond reach of their partner.
+        self.candidate_unjudged = torch.empty(0, dtype=torch.bool, device=device)
         # Pairs of policies ([P, 2], by index) and their probes ([P·pair_points, D]).
         self.pair_index = torch.empty(0, 2, dtype=torch.long, device=device)
         self.pair_probes = vector
@@ -177,6 +186,16 @@ class HillValley(NoVetting):
             self.candidate_rewards, search.policy_best_rewards[nearest]
         )
         self.candidate_partners = nearest
+        if self.accept_unjudged:
+            # Beyond reach both ways: the partner's exploration to the candidate's best
+            # sample, the candidate's starting covariance to the partner's.
+            gap = (partners[nearest] - self.candidate_samples)[:, None, :]  # [C, 1, D]
+            from_partner = exploration_distance(search, -gap, nearest)[:, 0]
+            chol, info = torch.linalg.cholesky_ex(self.candidate_covariances)
+            z = torch.linalg.solve_triangular(chol, gap.transpose(-1, -2), upper=False)
+            from_candidate = torch.where(info == 0, z.square().sum((-2, -1)).sqrt(), math.inf)
+            reach = torch.minimum(from_partner, from_candidate)
+            self.candidate_unjudged = reach >= PAIR_REACH
 
     def judge(self, search: PolicySearch) -> None:
         """Accept the candidates whose probe found a valley, and those on the hill of a
@@ -192,8 +211,11 @@ class HillValley(NoVetting):
                 & ~search.active[partners]
                 & (self.candidate_rewards > search.policy_best_rewards[partners])
             )
+            accept = valley | refutes
+            if self.accept_unjudged:
+                accept = accept | self.candidate_unjudged
             self._place(search, refutes)
-            accepted = self._accept(search, valley | refutes)
+            accepted = self._accept(search, accept)
             replaced = partners[accepted[refutes[accepted]]].unique()
             if replaced.numel():
                 # Pair probes were chosen by index: they no longer apply.
@@ -321,7 +343,10 @@ class HillValley(NoVetting):
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
         for name in self.TENSORS:
-            value = state[name]
+            if name == "candidate_unjudged" and name not in state:  # (a checkpoint from before)
+                value = torch.zeros(len(state["candidate_probes"]), dtype=torch.bool)
+            else:
+                value = state[name]
             if not isinstance(value, Tensor) or value.dim() != getattr(self, name).dim():
                 raise ValueError(f"state_dict[{name!r}] does not fit the hill-valley queues")
             setattr(self, name, value.to(device))
@@ -334,8 +359,9 @@ def make_vetting(
     pair_points: int,
     max_policies: int | None,
     cluster_every: int,
+    accept_unjudged: bool = False,
 ) -> NoVetting:
     """``HillValley`` with ``hill_valley``, else ``NoVetting``."""
     if not hill_valley:
         return NoVetting()
-    return HillValley(dim, device, pair_points, max_policies, cluster_every)
+    return HillValley(dim, device, pair_points, max_policies, cluster_every, accept_unjudged)
