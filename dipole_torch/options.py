@@ -85,11 +85,10 @@ class DipoleOptions:
             that lies beyond reach of the policy it was probed against (neither explores
             within ``PAIR_REACH`` stds of the other's best sample, where a probe above the
             worse one may show a ridge between two hills) becomes a policy instead of being
-            forgotten. For covering alternatives rather than converging on each: with
-            ``max_sampled=None`` it covers about 6.6 of the viapoint task's 8 routes in
-            1000 trials (3.4 without), and costs the optima found at 500 trials in 5-D and
-            10-D, where the new policies take the trials a converging one needs (docs:
-            Precision and coverage).
+            forgotten. For covering alternatives rather than converging on each (with
+            ``max_sampled=None``, every new policy sampled): the new policies take trials
+            that a lone converging one needs, so early precision in higher dimensions
+            drops (docs: Precision and coverage).
         max_policies: active policies at most (None: no limit).
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
         retire_std: retire a policy once its exploration std is below this times Σ_start's
