@@ -21,17 +21,23 @@ def two_hills(theta: torch.Tensor) -> torch.Tensor:
     return torch.maximum(1.0 - 0.08 * x.abs(), 0.9 - 10.0 * (x - 3.0).abs())
 
 
-def with_two_policies(pair_points: int, std: float = 2.0) -> Dipole:
-    """A started DIPOLE whose two active policies have best samples 0 and 3.005 and explore
-    with ``std`` (2: each reaches the other's best sample, 1.5 stds away)."""
+def started(**options) -> Dipole:
+    """A DIPOLE with ``options`` that has told its first batch on ``two_hills``."""
     opt = Dipole(
         torch.tensor([1.5], dtype=DTYPE),
         torch.tensor([[1.0]], dtype=DTYPE),
-        pair_points=pair_points,
         generator=torch.Generator().manual_seed(0),
+        **options,
     )
     theta = opt.ask()
     opt.tell(theta, two_hills(theta))
+    return opt
+
+
+def with_two_policies(pair_points: int, std: float = 2.0) -> Dipole:
+    """A started DIPOLE whose two active policies have best samples 0 and 3.005 and explore
+    with ``std`` (2: each reaches the other's best sample, 1.5 stds away)."""
+    opt = started(pair_points=pair_points)
     means = torch.tensor([[0.0], [3.005]], dtype=DTYPE)
     opt.policy_set.reset(means, torch.full((2, 1, 1), std**2, dtype=DTYPE))
     opt.archive.replace(means.clone(), two_hills(means), torch.arange(2))
@@ -142,14 +148,7 @@ def two_policies_and_a_candidate(accept_unjudged: bool, candidate_std: float) ->
     """The two-hills DIPOLE of ``with_two_policies`` with one active policy at 0 (std 0.1)
     and a candidate at 3.005 (return 0.85, starting std ``candidate_std``) queued and probed:
     its midpoint probe (0.88 on the wide hill's slope) shows no valley."""
-    opt = Dipole(
-        torch.tensor([1.5], dtype=DTYPE),
-        torch.tensor([[1.0]], dtype=DTYPE),
-        accept_unjudged=accept_unjudged,
-        generator=torch.Generator().manual_seed(0),
-    )
-    theta = opt.ask()
-    opt.tell(theta, two_hills(theta))
+    opt = started(accept_unjudged=accept_unjudged)
     zero = torch.zeros(1, 1, dtype=DTYPE)
     opt.policy_set.reset(zero, torch.full((1, 1, 1), 0.01, dtype=DTYPE))
     opt.archive.replace(zero.clone(), two_hills(zero), torch.zeros(1, dtype=torch.long))
