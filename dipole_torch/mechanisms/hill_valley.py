@@ -193,7 +193,8 @@ class HillValley(NoVetting):
             from_partner = exploration_distance(search, -gap, nearest)[:, 0]
             chol, info = torch.linalg.cholesky_ex(self.candidate_covariances)
             z = torch.linalg.solve_triangular(chol, gap.transpose(-1, -2), upper=False)
-            from_candidate = torch.where(info == 0, z.square().sum((-2, -1)).sqrt(), math.inf)
+            # (A covariance that does not factorise is no reason to accept: within reach.)
+            from_candidate = torch.where(info == 0, z.square().sum((-2, -1)).sqrt(), 0.0)
             reach = torch.minimum(from_partner, from_candidate)
             self.candidate_unjudged = reach >= PAIR_REACH
 
