@@ -24,6 +24,7 @@ __all__ = [
     "LOG_2PI",
     "gaussian_log_prob",
     "log_prob_tril",
+    "mahalanobis",
     "symmetric",
 ]
 
@@ -31,6 +32,13 @@ __all__ = [
 def symmetric(matrix: Tensor) -> Tensor:
     """``[..., D, D]`` ½ (A + Aᵀ): removes the rounding asymmetry of products and inverses."""
     return 0.5 * (matrix + matrix.transpose(-1, -2))
+
+
+def mahalanobis(tril: Tensor, diff: Tensor) -> Tensor:
+    """``[K, P]`` the lengths of ``diff: [K, P, D]`` under L_k L_kᵀ, ``tril: [K, D, D]``
+    (row k under factor k; one triangular solve per factor)."""
+    z = torch.linalg.solve_triangular(tril, diff.transpose(-1, -2), upper=False)
+    return z.square().sum(-2).sqrt()
 
 
 def log_prob_tril(value: Tensor, mean: Tensor | float, tril: Tensor) -> Tensor:

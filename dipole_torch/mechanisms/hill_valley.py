@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from dipole_torch.gaussian import DTYPE
+from dipole_torch.gaussian import DTYPE, mahalanobis
 from dipole_torch.mechanisms.retirement import exploration_distance
 
 if TYPE_CHECKING:
@@ -192,9 +192,8 @@ class HillValley(NoVetting):
             gap = (partners[nearest] - self.candidate_samples)[:, None, :]  # [C, 1, D]
             from_partner = exploration_distance(search, -gap, nearest)[:, 0]
             chol, info = torch.linalg.cholesky_ex(self.candidate_covariances)
-            z = torch.linalg.solve_triangular(chol, gap.transpose(-1, -2), upper=False)
             # (A covariance that does not factorise is no reason to accept: within reach.)
-            from_candidate = torch.where(info == 0, z.square().sum((-2, -1)).sqrt(), 0.0)
+            from_candidate = torch.where(info == 0, mahalanobis(chol, gap)[:, 0], 0.0)
             reach = torch.minimum(from_partner, from_candidate)
             self.candidate_unjudged = reach >= PAIR_REACH
 

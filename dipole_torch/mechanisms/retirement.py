@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from dipole_torch.gaussian import DTYPE
+from dipole_torch.gaussian import DTYPE, mahalanobis
 from dipole_torch.memo import Memo
 from dipole_torch.policy_set import PolicyField
 
@@ -53,8 +53,7 @@ def exploration_distance(search: PolicySearch, diff: Tensor, rows: Tensor | None
     chol, ok = search.policy_set.exploration_factors()
     if rows is not None:
         chol, ok = chol[rows], ok[rows]
-    z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)
-    return torch.where(ok[:, None], z.square().sum(-2).sqrt(), math.inf)
+    return torch.where(ok[:, None], mahalanobis(chol, diff), math.inf)
 
 
 def _spread(search: PolicySearch) -> Tensor:
