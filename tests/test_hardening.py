@@ -71,6 +71,15 @@ def assert_resumes_identically(opt, copy, reward, iterations: int) -> None:
     assert same_state(opt.state_dict(), copy.state_dict())
 
 
+def run_to(opt, reward, trials: int, after_tell=lambda: None) -> None:
+    """Ask, and tell ``reward``'s returns, until ``opt`` has told ``trials``; ``after_tell()``
+    after each tell."""
+    while opt.trials < trials:
+        theta = opt.ask()
+        opt.tell(theta, reward(theta))
+        after_tell()
+
+
 def finite_policies(opt) -> bool:
     return bool(opt.policy_means.isfinite().all() and opt.policy_covariances.isfinite().all())
 
@@ -386,9 +395,7 @@ def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpo
                       generator=torch.Generator().manual_seed(seed))  # fmt: skip
 
     opt = make(0)
-    while opt.trials < 800:
-        theta = opt.ask()
-        opt.tell(theta, offset_sphere(theta))
+    run_to(opt, offset_sphere, 800)
     prior = opt.dp_state.prior
     with pytest.raises(ValueError, match="too close to singular"):
         check_well_conditioned(prior.scale, "scale")  # what a user-given prior must pass
@@ -429,14 +436,13 @@ def test_a_gibbs_update_that_rounds_h_off_positive_definite_fails_its_sweep_not_
                       m=1, regularization=0.0, reward_weighted=False,
                       generator=torch.Generator().manual_seed(seed))  # fmt: skip
 
-    opt = make(703)
-    while opt.trials < 1000:
-        theta = opt.ask()
-        opt.tell(theta, offset_sphere(theta))
-        prior = opt.dp_state.prior
+    def h_factorises():
         for name in ("scale", "mean_covariance"):
-            _, info = torch.linalg.cholesky_ex(getattr(prior, name))
+            _, info = torch.linalg.cholesky_ex(getattr(opt.dp_state.prior, name))
             assert int(info) == 0, f"the chain kept an H whose {name} does not factorise"
+
+    opt = make(703)
+    run_to(opt, offset_sphere, 1000, after_tell=h_factorises)
     assert refused, "the run no longer reaches a refused update of H: choose another seed"
     assert opt.clusterings_skipped > 0
     assert_resumes_identically(opt, make(99), offset_sphere, 5)
@@ -460,7 +466,5 @@ def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
 
     opt = Dipole(torch.zeros(5), torch.eye(5), bounds=(-5.0, 5.0), importance="global",
                  explore=0.5, M=1, generator=torch.Generator().manual_seed(1))  # fmt: skip
-    while opt.trials < 300:
-        theta = opt.ask()
-        opt.tell(theta, peaks(theta))
+    run_to(opt, peaks, 300)
     assert torch.isfinite(opt.policy_means).all() and opt.num_policies >= 1
