@@ -8,8 +8,10 @@ dispatch; an iteration costs about its calls times the cost of one. Printed per 
 thread:
 
 * **a call**: µs of a bare elementwise call on ``[K, D]`` float64 (``torch.add``; numpy's
-  ``np.add`` beside it), and eq. 7 (``dipole_torch.power.power_update``, the PoWER step on
-  K = 4 policies' importance sets of M = 5) per step and per call: in torch as the library
+  ``np.add`` beside it), of a batched Cholesky factorisation of K covariances ``[K, p, p]``
+  (p = D + 1, a clustering's; ``torch.linalg.cholesky_ex``), and eq. 7
+  (``dipole_torch.power.power_update``, the PoWER step on K = 4 policies' importance sets
+  of M = 5) per step and per call: in torch as the library
   runs it, under ``torch.jit.script`` (its lines compiled to TorchScript, where the installed
   torch still scripts them) and transcribed to numpy (the same lines, equal to rounding):
   the three engines a rewrite of the bookkeeping could use;
@@ -19,8 +21,9 @@ thread:
   CPU a trial on the same run's landscape beside it;
 * **the calls**: the torch calls a DIPOLE iteration and a PoWER iteration make
   (``bench_iteration.py``'s count, 500 trials, seed 0) and DIPOLE's trials an iteration, so
-  the floor of a DIPOLE trial at eager dispatch (calls a trial × µs a call) beside the
-  budget, and the calls a trial the budget allows.
+  the floor of a DIPOLE trial at eager dispatch (calls a trial × eq. 7's µs a call: a lower
+  bound, as a factorisation or a triangular solve costs several elementwise calls) beside
+  the budget, and the calls a trial the budget allows.
 """
 
 from __future__ import annotations
@@ -122,6 +125,8 @@ def main() -> None:
         row = {"D": d, "calls": eq7_calls((mean, samples, weights))}
         row["add"] = per_call_us(torch.add, (mean, mean), args.repeats)
         row["np_add"] = per_call_us(np.add, (host[0], host[0]), args.repeats)
+        covs = torch.eye(d + 1, dtype=torch.float64).expand(K, d + 1, d + 1).contiguous()
+        row["cholesky"] = per_call_us(torch.linalg.cholesky_ex, (covs,), args.repeats)
         row["eager"] = per_call_us(
             lambda *a: power_update(*a, validate=False), (mean, samples, weights), args.repeats
         )
@@ -140,7 +145,7 @@ def main() -> None:
 
     print(f"a call at DIPOLE's sizes (K = {K}, M = {M}), µs, one thread:")
     header = (
-        f"{'D':>4} {'torch.add':>10} {'np.add':>8} {'eq.7 torch':>11} {'calls':>6} "
+        f"{'D':>4} {'torch.add':>10} {'np.add':>8} {'cholesky':>9} {'eq.7 torch':>11} {'calls':>6} "
         f"{'µs/call':>8} {'eq.7 script':>12} {'eq.7 numpy':>11}"
     )
     print(header)
@@ -148,7 +153,8 @@ def main() -> None:
     for r in rows:
         script = f"{r['script']:>12.1f}" if r["script"] is not None else f"{'n/a':>12}"
         print(
-            f"{r['D']:>4} {r['add']:>10.2f} {r['np_add']:>8.2f} {r['eager']:>11.1f} "
+            f"{r['D']:>4} {r['add']:>10.2f} {r['np_add']:>8.2f} {r['cholesky']:>9.2f} "
+            f"{r['eager']:>11.1f} "
             f"{r['calls']:>6d} {r['eager'] / r['calls']:>8.2f} {script} {r['numpy']:>11.1f}"
         )
     print()
