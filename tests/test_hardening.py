@@ -381,7 +381,21 @@ def test_a_checkpoint_round_trip_continues_identically():
     assert math.isfinite(opt.best()[1])
 
 
-def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpoint():
+@pytest.fixture
+def lone_policies_clustered(monkeypatch):
+    """Every clustering runs, also one that sees a lone policy's samples alone (the default
+    skips it: ``OverlapMatching.clustered_rows``). The states the two tests below need, a
+    prior drawn from a converged lone policy's samples, arise from those clusterings."""
+    from dipole_torch.mechanisms.matching import OverlapMatching, policy_and_scout_rows
+
+    monkeypatch.setattr(
+        OverlapMatching, "clustered_rows", lambda self, search: policy_and_scout_rows(search)
+    )
+
+
+def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpoint(
+    lone_policies_clustered,
+):
     """A long successful run without regularisation or retirement: its policies converge
     on the optimum, their covariances shrink, and the DP prior that H's Gibbs update draws
     from them is closer to singular than a prior a user may pass (correlation eigenvalue
@@ -409,7 +423,7 @@ def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpo
 
 
 def test_a_gibbs_update_that_rounds_h_off_positive_definite_fails_its_sweep_not_the_chain(
-    monkeypatch,
+    monkeypatch, lone_policies_clustered
 ):
     """Without regularisation, on returns that are a function of θ, a converged policy's
     components are nearly singular along the curve (θ, r(θ)), and H's Gibbs update can draw

@@ -3,6 +3,8 @@
 import torch
 from test_optimizer import started_dipole, two_optima
 
+from dipole_torch import Dipole
+from dipole_torch.archive import NO_POLICY
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.mechanisms.matching import adopt_components, match_by_overlap
 
@@ -67,3 +69,56 @@ def test_the_host_matching_equals_the_greedy_matching_on_tensors():
         policies = torch.randperm(10, generator=g)[:p]
         expected = _match_by_overlap_on_tensors(labels, old, c, policies)
         assert torch.equal(match_by_overlap(labels, old, c, policies), expected)
+
+
+def _sphere(theta):
+    return -(theta.double() - 0.5).square().sum(-1)
+
+
+def test_a_clustering_that_would_see_one_policys_samples_alone_is_skipped():
+    # One policy (max_policies=1) and its samples alone: nothing to match but that policy,
+    # so no sweep runs; with a scout, or a second policy's samples, the clustering runs.
+    opt = Dipole(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64), max_policies=1,
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    theta = opt.ask()
+    opt.tell(theta, _sphere(theta))
+    assert opt.num_policies == 1 and bool((opt.owner == 0).all())
+    fits = []
+    fit = opt._fit
+    opt._fit = lambda *args, **kwargs: fits.append(1) or fit(*args, **kwargs)
+    assert opt.matching.clustered_rows(opt).numel() == 0
+    opt._cluster()
+    assert fits == []
+
+    scout = torch.tensor([[2.0, -2.0]], dtype=F64)
+    opt.archive.append(scout, _sphere(scout), torch.tensor([NO_POLICY]))
+    assert opt.matching.clustered_rows(opt).numel() == len(opt.archive)
+    opt._cluster()
+    assert fits == [1]
+
+    opt = Dipole(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64), max_policies=1,
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    theta = opt.ask()
+    opt.tell(theta, _sphere(theta))
+    opt.policy_set.extend(scout, 0.1 * torch.eye(2, dtype=F64)[None])  # a second, active one
+    opt.archive.append(scout, _sphere(scout), torch.tensor([1]))
+    assert opt.matching.clustered_rows(opt).numel() == len(opt.archive)
+
+
+def test_a_lone_policy_runs_without_clusterings_until_a_scout_arrives():
+    # explore=0: no scouts while a policy is active; with max_policies=1 the run's
+    # clusterings after the first see one policy's samples alone and are all skipped.
+    opt = Dipole(
+        torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64), max_policies=1, explore=0.0,
+        retire_std=0.0, generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    theta = opt.ask()
+    opt.tell(theta, _sphere(theta))
+    fits = []
+    fit = opt._fit
+    opt._fit = lambda *args, **kwargs: fits.append(1) or fit(*args, **kwargs)
+    while opt.trials < 150:
+        theta = opt.ask()
+        opt.tell(theta, _sphere(theta))
+    assert opt.iteration >= 4 * opt.cluster_every and fits == []
+    assert float(opt.best()[1]) > -1e-3  # and it converges all the same

@@ -32,7 +32,13 @@ from dipole_torch.power import importance_rows
 if TYPE_CHECKING:
     from dipole_torch.dipole import Dipole
 
-__all__ = ["OverlapMatching", "ReplaceMatching", "adopt_components", "match_by_overlap"]
+__all__ = [
+    "OverlapMatching",
+    "ReplaceMatching",
+    "adopt_components",
+    "match_by_overlap",
+    "policy_and_scout_rows",
+]
 
 
 def adopt_components(search: Dipole, state: DPMixtureState) -> Tensor:
@@ -120,10 +126,16 @@ class OverlapMatching:
     def clustered_rows(self, search: Dipole) -> Tensor:
         """``[N']`` the samples of the clustered policies (``Dipole.clustered_policies``:
         the active ones but for those woken to refine) and the scouts (retired and refining
-        policies keep theirs out of it)."""
+        policies keep theirs out of it); none when that is one policy's samples alone.
+
+        One policy's kept samples and no scout (its importance set: M points) leave a
+        clustering nothing to match but that policy, and almost never a new component; the
+        clustering is skipped, for its cost in runs with one active policy (not in the paper,
+        whose variant matches by ``"replace"``; docs: Speed)."""
         owner = search.archive.owner
-        clustered = search.clustered_policies
-        return ((owner < 0) | clustered[owner.clamp_min(0)]).nonzero().squeeze(-1)
+        if sum(search.clustered_policies.tolist()) <= 1 and not bool((owner < 0).any()):
+            return owner[:0]
+        return policy_and_scout_rows(search)
 
     def warm_start(self, search: Dipole, y: Tensor, rows: Tensor) -> DPMixtureState:
         """One component per clustered policy (its samples) and one per scout."""
@@ -219,6 +231,13 @@ class OverlapMatching:
         archive.owner = torch.tensor(owner, dtype=torch.long, device=search.device)
         archive.keep(torch.tensor(kept, dtype=torch.long, device=search.device))
         keep_importance_sets(search)
+
+
+def policy_and_scout_rows(search: Dipole) -> Tensor:
+    """``[N']`` the archive rows of the clustered policies' samples and of the scouts."""
+    owner = search.archive.owner
+    clustered = search.clustered_policies
+    return ((owner < 0) | clustered[owner.clamp_min(0)]).nonzero().squeeze(-1)
 
 
 def match_by_overlap(labels: Tensor, old: Tensor, num_components: int, policies: Tensor) -> Tensor:
