@@ -105,7 +105,7 @@ def test_a_clustering_that_would_see_one_policys_samples_alone_is_skipped():
     assert opt.matching.clustered_rows(opt).numel() == len(opt.archive)
 
 
-def test_a_lone_policy_runs_without_clusterings_until_a_scout_arrives():
+def test_a_lone_policy_without_scouts_runs_without_clusterings():
     # explore=0: no scouts while a policy is active; with max_policies=1 the run's
     # clusterings after the first see one policy's samples alone and are all skipped.
     opt = Dipole(
