@@ -388,9 +388,10 @@ def lone_policies_clustered(monkeypatch):
     prior drawn from a converged lone policy's samples, arise from those clusterings."""
     from dipole_torch.mechanisms.matching import OverlapMatching, policy_and_scout_rows
 
-    monkeypatch.setattr(
-        OverlapMatching, "clustered_rows", lambda self, search: policy_and_scout_rows(search)
-    )
+    def every_clustering(self, search):
+        return policy_and_scout_rows(search.archive.owner, search.clustered_policies)
+
+    monkeypatch.setattr(OverlapMatching, "clustered_rows", every_clustering)
 
 
 def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpoint(

@@ -75,6 +75,13 @@ def _sphere(theta):
     return -(theta.double() - 0.5).square().sum(-1)
 
 
+def _count_fits(opt) -> list:
+    """A list that gains an entry at each of ``opt``'s clusterings that runs sweeps."""
+    fits, fit = [], opt._fit
+    opt._fit = lambda *args, **kwargs: fits.append(1) or fit(*args, **kwargs)
+    return fits
+
+
 def test_a_clustering_that_would_see_one_policys_samples_alone_is_skipped():
     # One policy (max_policies=1) and its samples alone: nothing to match but that policy,
     # so no sweep runs; with a scout, or a second policy's samples, the clustering runs.
@@ -83,9 +90,7 @@ def test_a_clustering_that_would_see_one_policys_samples_alone_is_skipped():
     theta = opt.ask()
     opt.tell(theta, _sphere(theta))
     assert opt.num_policies == 1 and bool((opt.owner == 0).all())
-    fits = []
-    fit = opt._fit
-    opt._fit = lambda *args, **kwargs: fits.append(1) or fit(*args, **kwargs)
+    fits = _count_fits(opt)
     assert opt.matching.clustered_rows(opt).numel() == 0
     opt._cluster()
     assert fits == []
@@ -114,9 +119,7 @@ def test_a_lone_policy_without_scouts_runs_without_clusterings():
     )  # fmt: skip
     theta = opt.ask()
     opt.tell(theta, _sphere(theta))
-    fits = []
-    fit = opt._fit
-    opt._fit = lambda *args, **kwargs: fits.append(1) or fit(*args, **kwargs)
+    fits = _count_fits(opt)
     while opt.trials < 150:
         theta = opt.ask()
         opt.tell(theta, _sphere(theta))

@@ -132,10 +132,10 @@ class OverlapMatching:
         clustering nothing to match but that policy, and almost never a new component; the
         clustering is skipped, for its cost in runs with one active policy (not in the paper,
         whose variant matches by ``"replace"``; docs: Speed)."""
-        owner = search.archive.owner
-        if sum(search.clustered_policies.tolist()) <= 1 and not bool((owner < 0).any()):
+        owner, clustered = search.archive.owner, search.clustered_policies
+        if sum(clustered.tolist()) <= 1 and not bool((owner < 0).any()):
             return owner[:0]
-        return policy_and_scout_rows(search)
+        return policy_and_scout_rows(owner, clustered)
 
     def warm_start(self, search: Dipole, y: Tensor, rows: Tensor) -> DPMixtureState:
         """One component per clustered policy (its samples) and one per scout."""
@@ -233,10 +233,9 @@ class OverlapMatching:
         keep_importance_sets(search)
 
 
-def policy_and_scout_rows(search: Dipole) -> Tensor:
-    """``[N']`` the archive rows of the clustered policies' samples and of the scouts."""
-    owner = search.archive.owner
-    clustered = search.clustered_policies
+def policy_and_scout_rows(owner: Tensor, clustered: Tensor) -> Tensor:
+    """``[N']`` the rows of an archive's ``owner [N]`` that are samples of the ``clustered
+    [K]`` (bool) policies or scouts (owner < 0)."""
     return ((owner < 0) | clustered[owner.clamp_min(0)]).nonzero().squeeze(-1)
 
 
