@@ -273,7 +273,7 @@ class Dipole(PolicySearch):
             return
         y = self._augmented(rows)
         try:
-            state = self._fit(y, self.options.sweeps, self.matching.warm_start(self, y, rows))
+            state = self._fit(y, self._sweeps(rows), self.matching.warm_start(self, y, rows))
         except NUMERICAL_FAILURES:
             # Converged policies' samples can make a component's covariance numerically
             # singular in float64. A run that goes well must not stop: skip this clustering
@@ -282,6 +282,21 @@ class Dipole(PolicySearch):
             self.archive.keep(self.archive.owner >= 0)
             return
         self.matching.apply(self, rows, y, state)
+
+    def _sweeps(self, rows: Tensor) -> int:
+        """The sweeps of a warm-started clustering of ``rows``: ``scout_sweeps`` when they
+        are scouts alone, else ``sweeps``.
+
+        Scouts alone are clustered when every policy has retired (a restart) or is woken to
+        refine: the chain starts from one component per scout, and its components are only
+        candidates for the hill-valley probes, which decide what becomes a policy. Such a
+        partition of fresh scouts rarely settles, so it ran all ``sweeps``, the largest
+        cost of a long low-dimensional run; one sweep found as many optima (not in the
+        paper, which has no scouts; docs: Speed)."""
+        scouts_only = self.options.scout_sweeps is not None and not bool(
+            (self.archive.owner[rows] >= 0).any()
+        )
+        return self.options.scout_sweeps if scouts_only else self.options.sweeps
 
     # ------------------------------------------------------------------ the world changes
     def _reevaluate(self, returns: Tensor) -> None:

@@ -52,6 +52,8 @@ class DipoleOptions:
     ``settle``             1: a warm-started clustering    ``None``: every clustering runs
                            ends once a sweep leaves its    its ``sweeps``
                            partition unchanged
+    ``scout_sweeps``       1: a clustering of scouts       ``None`` (the paper has no
+                           alone runs one sweep            scouts)
     =====================  ==============================  ===================================
 
     Attributes:
@@ -65,6 +67,11 @@ class DipoleOptions:
             the partition unchanged (None: always ``sweeps``; paper: None); see
             ``DPSampler.fit``.
         initial_sweeps: Gibbs sweeps of the first clustering (from one component).
+        scout_sweeps: Gibbs sweeps of a clustering that sees scouts alone (every policy
+            retired or woken to refine, ``matching="overlap"``), which starts from one
+            component per scout and whose components are only candidates for the hill-valley
+            probes (None: ``sweeps``, ended by ``settle`` as any warm start); see
+            ``Dipole._cluster``.
         reward_range: None (the kept returns' min–max, any units), (low, high) (a fixed map)
             or "positive" (positive returns used as weights); see dipole_torch.RewardScale.
         reward_floor: smallest reward weight, in (0, 1).
@@ -112,6 +119,7 @@ class DipoleOptions:
     sweeps: int = 5
     settle: int | None = 1
     initial_sweeps: int = 20
+    scout_sweeps: int | None = 1
     reward_range: RewardRange = None
     reward_floor: float = 1e-3
     regularization: float = 1e-2
@@ -181,6 +189,7 @@ PAPER: dict[str, Any] = dict(
     auxiliary="fresh",
     reward_range="positive",
     settle=None,
+    scout_sweeps=None,
 )
 
 
@@ -244,6 +253,7 @@ _CHECKS = {
     "sweeps": check_count,
     "settle": _optional_count,
     "initial_sweeps": check_count,
+    "scout_sweeps": _optional_count,
     "reward_range": check_reward_range,
     "reward_floor": _floor,
     "regularization": _non_negative,

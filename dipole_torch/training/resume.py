@@ -74,6 +74,8 @@ ADDED_KEYS = {
     "algo.optimizer.settle": None,
     # Runs from before restarts could draw uniformly in a finite box.
     "algo.optimizer.restarts": "start",
+    # Runs from before a clustering of scouts alone ran one sweep.
+    "algo.optimizer.scout_sweeps": None,
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
