@@ -7,9 +7,10 @@ Each optimizer runs whole runs of ``--trials`` reward evaluations on a cheap two
 Printed per D: PoWER's, DIPOLE's (default variant) and DIPOLE (paper)'s milliseconds per
 iteration, averaged over whole runs (clusterings included; the first tell, which holds the
 first clustering of 20 sweeps, is counted in the average and also shown on its own), and
-each DIPOLE figure as a ratio to PoWER's; and the same for DIPOLE with ``settle=None``
-(every clustering runs all its sweeps; the default ends a warm-started one after the first
-sweep that leaves its partition unchanged).
+each DIPOLE figure as a ratio to PoWER's; and the same for DIPOLE with ``settle=None,
+scout_sweeps=None`` (every clustering runs all its sweeps; the default ends a warm-started
+one after the first sweep that leaves its partition unchanged, and gives a clustering of
+scouts alone one sweep).
 Timings are the median over ``--seeds`` runs.
 Runs at D >= 50 are capped at ``--big-trials`` evaluations (their clusterings dominate).
 
@@ -56,7 +57,7 @@ def make(name: str, d: int, seed: int):
     if name == "dipole_paper":
         return Dipole.paper(theta0, sigma, n0=10, reward_range=(0.0, 1.0), generator=g)
     if name == "dipole_all_sweeps":  # every clustering runs all its sweeps
-        return Dipole(theta0, sigma, n0=10, settle=None, generator=g)
+        return Dipole(theta0, sigma, n0=10, settle=None, scout_sweeps=None, generator=g)
     return Dipole(theta0, sigma, n0=10, generator=g)
 
 

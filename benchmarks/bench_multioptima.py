@@ -108,7 +108,8 @@ FOUND_RADIUS = 0.1  # in units of the peak's width
 FOUND_LEVEL = 0.99  # fraction of the height h above the offset b
 METHODS = ("DIPOLE", "DIPOLE (paper)", "PoWER", "IPOP-CMA-ES", "NMMSO", "random search")
 # Run when asked for (--methods): DIPOLE with every clustering running all its sweeps
-# (``settle=None``; the default ends one once its partition settles), and DIPOLE with the
+# (``settle=None, scout_sweeps=None``; the default ends one once its partition settles and
+# gives a clustering of scouts alone one sweep), and DIPOLE with the
 # options for covering alternatives (``accept_unjudged=True, max_sampled=None``, as
 # bench_viapoint_qd.py's "DIPOLE (coverage)"), to measure each option's effect beside the
 # defaults.
@@ -302,7 +303,7 @@ def run_dipole(
 
 
 def run_dipole_all_sweeps(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
-    return run_dipole(landscape, budgets, seed, settle=None)
+    return run_dipole(landscape, budgets, seed, settle=None, scout_sweeps=None)
 
 
 def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:

@@ -15,7 +15,8 @@ for NMMSO, the Python around each single-point evaluation. First-call costs (imp
 initialisation) are spent in a warm-up run before the table.
 
 Printed per D: each method's optimizer CPU summed over the cases, the trials it used, its
-CPU per trial, and DIPOLE's (and DIPOLE (paper)'s) ratio to IPOP-CMA-ES's and to NMMSO's
+CPU per trial, the Gibbs sweeps its clusterings ran (DIPOLE's variants; counted, so the same
+on every machine), and DIPOLE's (and DIPOLE (paper)'s) ratio to IPOP-CMA-ES's and to NMMSO's
 summed CPU.
 """
 
@@ -31,6 +32,8 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_multioptima import OPT_IN, RUNNERS, case_seeds, make_landscape  # noqa: E402
+
+from dipole_torch.dp.sampler import DPSampler  # noqa: E402
 
 METHODS = ("DIPOLE", "DIPOLE (paper)", "IPOP-CMA-ES", "NMMSO")
 ANCHORS = ("IPOP-CMA-ES", "NMMSO")
@@ -56,15 +59,36 @@ class TimedLandscape:
         return values
 
 
-def optimizer_cpu(method: str, dim: int, k: int, seed: int, trials: int) -> tuple[float, int]:
-    """``(optimizer CPU seconds, trials evaluated)`` of one run of ``method`` on case
-    (D, k, seed) with a budget of ``trials``."""
+class SweepCount:
+    """Counts ``DPSampler.sweep`` calls while in use (a counter around the method)."""
+
+    def __init__(self):
+        self.sweeps = 0
+
+    def __enter__(self) -> SweepCount:
+        sweep = self._sweep = DPSampler.sweep
+
+        def counted(sampler, *args, **kwargs):
+            self.sweeps += 1
+            return sweep(sampler, *args, **kwargs)
+
+        DPSampler.sweep = counted
+        return self
+
+    def __exit__(self, *exc) -> None:
+        DPSampler.sweep = self._sweep
+
+
+def optimizer_cpu(method: str, dim: int, k: int, seed: int, trials: int) -> tuple[float, int, int]:
+    """``(optimizer CPU seconds, trials evaluated, Gibbs sweeps)`` of one run of ``method``
+    on case (D, k, seed) with a budget of ``trials``."""
     landscape_seed, method_seed = case_seeds(dim, k, seed)
     landscape = TimedLandscape(make_landscape(dim, k, landscape_seed))
-    start = time.process_time()
-    RUNNERS[method](landscape, [trials], method_seed)
-    total = time.process_time() - start
-    return total - landscape.seconds, landscape.trials
+    with SweepCount() as count:
+        start = time.process_time()
+        RUNNERS[method](landscape, [trials], method_seed)
+        total = time.process_time() - start
+    return total - landscape.seconds, landscape.trials, count.sweeps
 
 
 def main() -> None:
@@ -80,7 +104,9 @@ def main() -> None:
     for method in methods:  # first-call costs out of the table
         optimizer_cpu(method, 2, 2, 0, 60)
     width = max(len("method"), *map(len, methods))
-    header = f"{'D':>3} {'method':<{width}} {'CPU s':>8} {'trials':>7} {'µs/trial':>9}"
+    header = (
+        f"{'D':>3} {'method':<{width}} {'CPU s':>8} {'trials':>7} {'µs/trial':>9} {'sweeps':>7}"
+    )
     header += "".join(f" {'/' + anchor:>13}" for anchor in ANCHORS if anchor in methods)
     print(f"optimizer CPU (evaluations excluded), {args.trials} trials a run, "
           f"k in {args.ks}, {args.seeds} seeds")  # fmt: skip
@@ -89,16 +115,19 @@ def main() -> None:
     for dim in args.dims:
         seconds = dict.fromkeys(methods, 0.0)
         used = dict.fromkeys(methods, 0)
+        sweeps = dict.fromkeys(methods, 0)
         for k in args.ks:
             for seed in range(args.seeds):
                 for method in methods:
-                    cpu, trials = optimizer_cpu(method, dim, k, seed, args.trials)
+                    cpu, trials, count = optimizer_cpu(method, dim, k, seed, args.trials)
                     seconds[method] += cpu
                     used[method] += trials
+                    sweeps[method] += count
         for method in methods:
             line = (
                 f"{dim:>3} {method:<{width}} {seconds[method]:>8.2f} {used[method]:>7} "
-                f"{1e6 * seconds[method] / max(used[method], 1):>9.0f}"
+                f"{1e6 * seconds[method] / max(used[method], 1):>9.0f} "
+                f"{sweeps[method] if method.startswith('DIPOLE') else '-':>7}"
             )
             for anchor in ANCHORS:
                 if anchor in methods:
