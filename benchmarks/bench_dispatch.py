@@ -134,8 +134,8 @@ def main() -> None:
             per_call_us(scripted, (mean, samples, weights), args.repeats) if scripted else None
         )
         row["numpy"] = per_call_us(eq7_numpy, host, args.repeats)
-        ipop_s, ipop_trials = optimizer_cpu("IPOP-CMA-ES", d, 8, 0, 2000)
-        dipole_s, dipole_trials = optimizer_cpu("DIPOLE", d, 8, 0, 2000)
+        ipop_s, ipop_trials, _ = optimizer_cpu("IPOP-CMA-ES", d, 8, 0, 2000)
+        dipole_s, dipole_trials, _ = optimizer_cpu("DIPOLE", d, 8, 0, 2000)
         row["ipop"] = ipop_s / ipop_trials * 1e6
         row["dipole"] = dipole_s / dipole_trials * 1e6
         row["dipole_calls"] = torch_calls("dipole", d, 500, 0)
