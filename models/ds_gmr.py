@@ -43,13 +43,15 @@ Choices:
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
-from dipole_torch import GaussianMixture
+if TYPE_CHECKING:
+    from dipole_torch import GaussianMixture
 
 
 class DSGMR:
@@ -147,6 +149,8 @@ class DSGMR:
         """The GMM over ``[t, x]`` of policies ``theta: [B, K·dim]`` (batch shape ``[B]``;
         with a goal component, ``goal: [dim]`` is its fixed centre and is the last
         component)."""
+        from dipole_torch import GaussianMixture  # (imports Pyro: not needed for the paths)
+
         centres = self._all_centres(theta, goal)
         time_column = self.time_centres.to(theta.dtype).expand(theta.shape[0], -1).unsqueeze(-1)
         means = torch.cat([time_column, centres], dim=-1)  # [B, K, 1+dim]

@@ -164,12 +164,17 @@ def register(store: ConfigStore | None = None) -> None:
     if not TASKS:
         TASKS.update(task_schemas())
         ALGOS.update(algo_schemas())
-    store.store(name="dipole_torch_config", node=Config)
-    store.store(name="dipole_torch_task", node=TaskConfig)
-    for name, schema in TASKS.items():
-        store.store(name=f"dipole_torch_task_{name}", node=schema)
-    for name, schema in ALGOS.items():
-        store.store(name=f"dipole_torch_algo_{name}", node=schema)
+    nodes = {
+        "dipole_torch_config": Config,
+        "dipole_torch_task": TaskConfig,
+        **{f"dipole_torch_task_{name}": schema for name, schema in TASKS.items()},
+        **{f"dipole_torch_algo_{name}": schema for name, schema in ALGOS.items()},
+    }
+    for name, node in nodes.items():
+        # Stored once: each store builds the schema's config anew (OmegaConf.structured),
+        # and train.py, the configs package and --help each register.
+        if f"{name}.yaml" not in store.repo:
+            store.store(name=name, node=node)
 
 
 # ------------------------------------------------------------------ --help
