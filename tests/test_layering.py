@@ -74,3 +74,30 @@ def test_iterations_do_not_import_pyro_until_a_mixture_is_built():
         "mixture": "GaussianMixture",
         "same": True,
     }
+
+
+START = """
+import json, sys
+from hydra.core.config_store import ConfigStore
+from dipole_torch.training.config import register
+stores = []
+store = ConfigStore.instance()
+original = store.store
+store.store = lambda **kwargs: (stores.append(kwargs["name"]), original(**kwargs))
+register()
+first = len(stores)
+import dipole_torch.configs  # registers again, as --help does
+register()
+print(json.dumps({"pyro": "pyro" in sys.modules, "first": first, "again": len(stores) - first}))
+"""
+
+
+def test_the_training_start_imports_no_pyro_and_stores_each_schema_once():
+    result = subprocess.run(
+        [sys.executable, "-c", START], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert report["pyro"] is False  # every task's schema, the viapoint task's model too
+    assert report["first"] >= 9  # the config, the task base, 4 tasks, 3 algorithms
+    assert report["again"] == 0
