@@ -71,7 +71,7 @@ class DipoleOptions:
             retired or woken to refine, ``matching="overlap"``), which starts from one
             component per scout and whose components are only candidates for the hill-valley
             probes (None: ``sweeps``, ended by ``settle`` as any warm start); see
-            ``Dipole._cluster``.
+            ``Dipole._sweeps``.
         reward_range: None (the kept returns' min–max, any units), (low, high) (a fixed map)
             or "positive" (positive returns used as weights); see dipole_torch.RewardScale.
         reward_floor: smallest reward weight, in (0, 1).
