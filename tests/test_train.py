@@ -304,6 +304,27 @@ def test_the_configs_extend_the_schemas_and_build_their_targets(tmp_path):
     assert default.options.max_policies is None and default.options.explore == 0.0
 
 
+def test_the_coverage_preset_is_the_library_variant_with_two_options_changed():
+    """``algo=dipole_coverage`` builds a Dipole whose options are the defaults but for
+    ``accept_unjudged=True`` and ``max_sampled=None`` (the two the docs' coverage rows use)."""
+    from dipole_torch import DipoleOptions
+
+    cfg = compose_config("algo=dipole_coverage").algo
+    assert cfg.name == "dipole_coverage" and not cfg.use_task_reward_range
+    opt = instantiate(cfg.optimizer, theta0=torch.zeros(2, dtype=torch.float64), sigma_start=1.0)
+    assert isinstance(opt, Dipole)
+    changed = {
+        f.name
+        for f in dataclasses.fields(DipoleOptions)
+        if getattr(opt.options, f.name) != getattr(DipoleOptions(), f.name)
+    }
+    assert changed == {"accept_unjudged", "max_sampled"}
+    assert opt.options.accept_unjudged is True and opt.options.max_sampled is None
+    # An override still applies on top of the preset.
+    cfg = compose_config("algo=dipole_coverage", "algo.optimizer.max_sampled=6").algo
+    assert cfg.optimizer.max_sampled == 6 and cfg.optimizer.accept_unjudged
+
+
 def test_each_default_is_stated_once_in_the_code():
     """The YAML files hold the experiments' own settings only; every task's and optimizer's
     argument and default comes from its signature (DIPOLE's: DipoleOptions)."""
