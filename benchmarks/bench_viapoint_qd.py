@@ -18,7 +18,8 @@ that route with return ≥ r (r = 0.9, the paper's count, and 0.95). Returned so
   ``reproduce_viapoint.py`` (these evaluations are not charged). DIPOLE is never told
   routes: it sees returns only.
 * **DIPOLE (coverage)**: the same with the options a user sets to cover alternatives rather
-  than converge on each (``COVERAGE``: ``accept_unjudged=True``, ``max_sampled=None``).
+  than converge on each (``configs/algo/dipole_coverage.yaml``: ``accept_unjudged=True``,
+  ``max_sampled=None``).
 * **MAP-Elites** and **CMA-MAE** (pyribs 0.12): the elites of an archive with one cell per
   route, **the route given as the behaviour descriptor: an oracle** that DIPOLE does not
   get (it would not exist for a task whose alternatives are unknown). The elites are
@@ -57,8 +58,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # (lockstep, reproduce
 ROOT = Path(__file__).resolve().parents[1]
 # (Appended, not inserted: the peers' seeds derive from their index.)
 METHODS = ("DIPOLE", "MAP-Elites", "CMA-MAE", "DIPOLE (coverage)")
-# ``train.py`` overrides of "DIPOLE (coverage)".
-COVERAGE = ("algo.optimizer.accept_unjudged=true", "algo.optimizer.max_sampled=null")
+# The configs (configs/algo/<name>.yaml) of DIPOLE's two rows, as train.py's algo=<name>.
+CONFIGS = {"DIPOLE": "dipole", "DIPOLE (coverage)": "dipole_coverage"}
 SHOWN = ("DIPOLE", "DIPOLE (coverage)", "MAP-Elites", "CMA-MAE")  # the tables' order
 BUDGETS = (300, 1000)
 LEVELS = (0.9, 0.95)
@@ -94,11 +95,11 @@ def _covered(routes, rewards) -> dict[str, float]:
     return best
 
 
-def run_dipole(seed: int, budgets: Sequence[int], overrides: Sequence[str] = ()) -> dict[int, dict]:
+def run_dipole(seed: int, budgets: Sequence[int], config: str = "dipole") -> dict[int, dict]:
     from reproduce_viapoint import make_optimizer
 
     task, n0 = _task()
-    opt = make_optimizer("DIPOLE", task, n0, seed, overrides)
+    opt = make_optimizer("DIPOLE", task, n0, seed, config=config)
     snapshots = {}
     top = budgets[-1]
     while True:
@@ -189,10 +190,8 @@ def run_case(method: str, seed: int, budgets: Sequence[int]) -> dict:
     its returned solutions take (route -> best return), their number and the trials used."""
     budgets = sorted({int(b) for b in budgets})
     start = time.perf_counter()
-    if method == "DIPOLE":
-        per_budget = run_dipole(seed, budgets)
-    elif method == "DIPOLE (coverage)":
-        per_budget = run_dipole(seed, budgets, COVERAGE)
+    if method in CONFIGS:
+        per_budget = run_dipole(seed, budgets, CONFIGS[method])
     else:
         per_budget = run_qd(method, seed, budgets)
     for b, v in per_budget.items():

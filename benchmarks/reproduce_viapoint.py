@@ -75,11 +75,13 @@ ALGORITHMS = {"DIPOLE": "dipole", "DIPOLE (paper)": "dipole_paper", "PoWER": "po
 COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"}
 
 
-def make_optimizer(algo: str, task, n0: int, seed: int, overrides: Sequence[str] = ()):
-    """The optimizer of ``configs/algo/<algo>.yaml`` (its defaults: α = 1, m = 10, M = 5),
-    with Hydra ``overrides`` (``"algo.optimizer.max_sampled=null"``) as ``train.py`` takes
-    them."""
-    config = compose_config(f"algo={ALGORITHMS[algo]}", *overrides).algo
+def make_optimizer(
+    algo: str, task, n0: int, seed: int, overrides: Sequence[str] = (), config: str | None = None
+):
+    """The optimizer of ``configs/algo/<config>.yaml`` (by default ``ALGORITHMS[algo]``; the
+    defaults α = 1, m = 10, M = 5), with Hydra ``overrides``
+    (``"algo.optimizer.max_sampled=null"``) as ``train.py`` takes them."""
+    config = compose_config(f"algo={config or ALGORITHMS[algo]}", *overrides).algo
     optimizer = instantiate(
         config.optimizer,
         theta0=task.theta0.double(),
