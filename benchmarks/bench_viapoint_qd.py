@@ -99,7 +99,7 @@ def run_dipole(seed: int, budgets: Sequence[int], config: str = "dipole") -> dic
     from reproduce_viapoint import make_optimizer
 
     task, n0 = _task()
-    opt = make_optimizer("DIPOLE", task, n0, seed, config=config)
+    opt = make_optimizer("DIPOLE", task, n0, seed, name=config)
     snapshots = {}
     top = budgets[-1]
     while True:

@@ -76,12 +76,12 @@ COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"
 
 
 def make_optimizer(
-    algo: str, task, n0: int, seed: int, overrides: Sequence[str] = (), config: str | None = None
+    algo: str, task, n0: int, seed: int, overrides: Sequence[str] = (), name: str | None = None
 ):
-    """The optimizer of ``configs/algo/<config>.yaml`` (by default ``ALGORITHMS[algo]``; the
+    """The optimizer of ``configs/algo/<name>.yaml`` (by default ``ALGORITHMS[algo]``; the
     defaults α = 1, m = 10, M = 5), with Hydra ``overrides``
     (``"algo.optimizer.max_sampled=null"``) as ``train.py`` takes them."""
-    config = compose_config(f"algo={config or ALGORITHMS[algo]}", *overrides).algo
+    config = compose_config(f"algo={name or ALGORITHMS[algo]}", *overrides).algo
     optimizer = instantiate(
         config.optimizer,
         theta0=task.theta0.double(),
