@@ -23,6 +23,9 @@ one per sampled policy plus scouts and probes) and the time per trial; and, with
 property reads such as ``.shape``, which cost far less, so the count bounds the dispatches
 from above; counted in one more run per D; the label loop's numpy calls are not counted):
 at a few microseconds of dispatch each, they set the floor of an iteration at these sizes.
+With ``--count-ops`` a third table splits DIPOLE's calls by the part of the iteration that
+makes them (``PARTS``: each call counted once, in the innermost part it is made in; "the
+rest" is ``ask`` and ``tell`` around them: the checks of the told rows, the archive).
 """
 
 from __future__ import annotations
@@ -125,6 +128,59 @@ def torch_calls(name: str, d: int, trials: int, seed: int) -> float:
     return counter.calls / tells
 
 
+# The parts of a DIPOLE iteration whose torch calls the third table counts: (label, the
+# object's attribute on the optimizer, or "" for the optimizer itself; the method).
+PARTS = (
+    ("first clustering", "", "_after_initial_batch"),
+    ("clusterings", "", "_cluster"),
+    ("observe", "", "_observe"),
+    ("eq. 7", "importance", "power_step"),
+    ("sampling", "", "_propose"),
+    ("straddlers", "retirement", "restart_straddlers"),
+    ("retire, merge", "retirement", "retire_and_merge"),
+    ("hill-valley", "vetting", "judge"),
+    ("hill-valley", "vetting", "queue_probes"),
+    ("wake", "retirement", "wake"),
+)
+
+
+def calls_by_part(d: int, trials: int, seed: int) -> dict[str, float]:
+    """DIPOLE's torch calls per iteration of one whole run, by part (``PARTS``; each call
+    counted once, in the innermost part it is made in; ``"the rest"``: outside them)."""
+    opt = make("dipole", d, seed)
+    counter = CountCalls()
+    totals = dict.fromkeys([label for label, _, _ in PARTS] + ["the rest"], 0)
+    inner: list[int] = []  # per running part: the calls its nested parts made
+
+    def counted(label: str, method):
+        def part(*args, **kwargs):
+            before = counter.calls
+            inner.append(0)
+            try:
+                return method(*args, **kwargs)
+            finally:
+                made = counter.calls - before
+                totals[label] += made - inner.pop()
+                if inner:
+                    inner[-1] += made
+
+        return part
+
+    for label, path, name in PARTS:
+        owner = getattr(opt, path) if path else opt
+        setattr(owner, name, counted(label, getattr(owner, name)))  # on the instance only
+    tells = 0
+    while opt.trials < trials:
+        with counter:
+            theta = opt.ask()
+        r = reward(theta)
+        with counter:
+            opt.tell(theta, r)
+        tells += 1
+    totals["the rest"] = counter.calls - sum(totals.values())
+    return {label: calls / tells for label, calls in totals.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=500)
@@ -162,6 +218,7 @@ def main() -> None:
         calls = None
         if args.count_ops:
             calls = {name: torch_calls(name, d, trials, 0) for name in ("power", "dipole")}
+            calls["parts"] = calls_by_part(d, trials, 0)
         breakdown.append((d, med, calls))
     print()
     print("where DIPOLE's time goes (ms per iteration; ratios to PoWER's whole iteration):")
@@ -188,6 +245,21 @@ def main() -> None:
             f"{med['dipole']['trials']:>17.2f} {per_trial:>16.2f} {counted}",
             flush=True,
         )
+    if args.count_ops:
+        labels = list(breakdown[0][2]["parts"])
+        width = [max(len(label), 6) for label in labels]
+        print()
+        print("DIPOLE's torch calls an iteration, by part (one run a D, seed 0):")
+        header = f"{'D':>4} " + " ".join(
+            f"{label:>{w}}" for label, w in zip(labels, width, strict=True)
+        )
+        print(header)
+        print("-" * len(header))
+        for d, _, calls in breakdown:
+            row = [
+                f"{calls['parts'][label]:>{w}.1f}" for label, w in zip(labels, width, strict=True)
+            ]
+            print(f"{d:>4} " + " ".join(row))
 
 
 if __name__ == "__main__":
