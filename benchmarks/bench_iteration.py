@@ -114,10 +114,10 @@ def run(name: str, d: int, trials: int, seed: int) -> dict[str, float]:
     }
 
 
-def torch_calls(name: str, d: int, trials: int, seed: int) -> float:
-    """Torch calls per iteration of one whole run (``ask`` and ``tell`` only)."""
-    opt = make(name, d, seed)
-    counter, tells = CountCalls(), 0
+def counted_run(opt, trials: int, counter: CountCalls) -> int:
+    """Runs ``opt`` to ``trials`` with ``counter`` on during ``ask`` and ``tell`` only (the
+    reward's calls are not the optimizer's); returns the iterations (tells)."""
+    tells = 0
     while opt.trials < trials:
         with counter:
             theta = opt.ask()
@@ -125,6 +125,13 @@ def torch_calls(name: str, d: int, trials: int, seed: int) -> float:
         with counter:
             opt.tell(theta, r)
         tells += 1
+    return tells
+
+
+def torch_calls(name: str, d: int, trials: int, seed: int) -> float:
+    """Torch calls per iteration of one whole run (``ask`` and ``tell`` only)."""
+    counter = CountCalls()
+    tells = counted_run(make(name, d, seed), trials, counter)
     return counter.calls / tells
 
 
@@ -169,14 +176,7 @@ def calls_by_part(d: int, trials: int, seed: int) -> dict[str, float]:
     for label, path, name in PARTS:
         owner = getattr(opt, path) if path else opt
         setattr(owner, name, counted(label, getattr(owner, name)))  # on the instance only
-    tells = 0
-    while opt.trials < trials:
-        with counter:
-            theta = opt.ask()
-        r = reward(theta)
-        with counter:
-            opt.tell(theta, r)
-        tells += 1
+    tells = counted_run(opt, trials, counter)
     totals["the rest"] = counter.calls - sum(totals.values())
     return {label: calls / tells for label, calls in totals.items()}
 
