@@ -95,11 +95,11 @@ def _covered(routes, rewards) -> dict[str, float]:
     return best
 
 
-def run_dipole(seed: int, budgets: Sequence[int], config: str = "dipole") -> dict[int, dict]:
+def run_dipole(seed: int, budgets: Sequence[int], name: str = "dipole") -> dict[int, dict]:
     from reproduce_viapoint import make_optimizer
 
     task, n0 = _task()
-    opt = make_optimizer("DIPOLE", task, n0, seed, name=config)
+    opt = make_optimizer("DIPOLE", task, n0, seed, name=name)
     snapshots = {}
     top = budgets[-1]
     while True:

@@ -48,7 +48,6 @@ import argparse
 import json
 import multiprocessing
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -75,13 +74,10 @@ ALGORITHMS = {"DIPOLE": "dipole", "DIPOLE (paper)": "dipole_paper", "PoWER": "po
 COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"}
 
 
-def make_optimizer(
-    algo: str, task, n0: int, seed: int, overrides: Sequence[str] = (), name: str | None = None
-):
+def make_optimizer(algo: str, task, n0: int, seed: int, name: str | None = None):
     """The optimizer of ``configs/algo/<name>.yaml`` (by default ``ALGORITHMS[algo]``; the
-    defaults α = 1, m = 10, M = 5), with Hydra ``overrides``
-    (``"algo.optimizer.max_sampled=null"``) as ``train.py`` takes them."""
-    config = compose_config(f"algo={name or ALGORITHMS[algo]}", *overrides).algo
+    defaults α = 1, m = 10, M = 5), as ``train.py``'s ``algo=<name>`` builds it."""
+    config = compose_config(f"algo={name or ALGORITHMS[algo]}").algo
     optimizer = instantiate(
         config.optimizer,
         theta0=task.theta0.double(),
