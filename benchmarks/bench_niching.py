@@ -207,6 +207,7 @@ def run_random_search(
 RUNNERS: dict[str, Callable[[NichingFunction, Sequence[int], int], peers.Snapshots]] = {
     "DIPOLE": peers.run_dipole,
     "DIPOLE (all sweeps)": peers.run_dipole_all_sweeps,
+    "DIPOLE (coverage)": peers.run_dipole_coverage,
     "IPOP-CMA-ES": peers.run_ipop_cmaes,
     "NMMSO": peers.run_nmmso,
     "random search": run_random_search,

@@ -71,7 +71,9 @@ def test_shubert_and_rastrigin_reach_their_optimum_values():
         assert float(values.max()) > problem.f_star - 0.1 * abs(problem.f_star)
 
 
-@pytest.mark.parametrize("method", ["DIPOLE", "random search", "IPOP-CMA-ES", "NMMSO"])
+@pytest.mark.parametrize(
+    "method", ["DIPOLE", "DIPOLE (coverage)", "random search", "IPOP-CMA-ES", "NMMSO"]
+)
 def test_one_run_end_to_end_on_a_1d_function(method):
     if method == "IPOP-CMA-ES":
         pytest.importorskip("cma")
@@ -83,6 +85,10 @@ def test_one_run_end_to_end_on_a_1d_function(method):
         assert result["trials"] <= int(budget) and result["returned"] >= 1
         assert all(0 <= n <= 2 for n in result["found"].values())
     assert bench.run_case(1, 0, method, [100, 250])["budgets"] == case["budgets"]
+
+
+def test_every_method_the_command_line_offers_has_a_runner():
+    assert set(bench.METHODS + bench.peers.OPT_IN) <= set(bench.RUNNERS)
 
 
 def test_bad_function_number():
