@@ -124,7 +124,9 @@ class Dipole(PolicySearch):
         # The mechanisms, one object each ("off" is an object too).
         self.importance = make_importance(options.importance)
         self.exploration = make_exploration(options.exploration, d)
-        self.scouting = Scouting(options.explore, options.max_sampled, options.restarts)
+        self.scouting = Scouting(
+            options.explore, options.max_sampled, options.restarts, options.unjudged_share
+        )
         self.vetting = make_vetting(
             options.hill_valley, d, self.device, options.pair_points, options.max_policies,
             self.cluster_every, options.accept_unjudged,
@@ -137,6 +139,7 @@ class Dipole(PolicySearch):
         self.exploration.register(self)
         self.matching.register(self)
         self.retirement.register(self)
+        self.vetting.register(self)
         self.clusterings_skipped = 0  # clusterings that failed numerically
         self.sampler: DPSampler | None = None  # built with H at the first clustering
         self.dp_state: DPMixtureState | None = None
@@ -205,6 +208,7 @@ class Dipole(PolicySearch):
         ones, retirement notes the samples worse than all kept ones, vetting keeps the
         probes' returns."""
         self.vetting.observe(self, batch)
+        self.scouting.observe(self, batch)
         self.exploration.observe(self, batch)
         self.retirement.observe(self, batch)
 
@@ -358,6 +362,7 @@ class Dipole(PolicySearch):
             **super()._state(copy),
             **self.vetting.state_dict(copy),
             **self.retirement.state_dict(),
+            **self.scouting.state_dict(),
             "initial_prior": None if self.sampler is None else self.sampler.prior.state_dict(),
             "dp_state": None if self.dp_state is None else self.dp_state.state_dict(),
             "clusterings_skipped": self.clusterings_skipped,
@@ -368,6 +373,7 @@ class Dipole(PolicySearch):
         try:
             self.vetting.load_state_dict(state, self.device)
             self.retirement.load_state_dict(state)
+            self.scouting.load_state_dict(state)
             prior, dp = (
                 _to_device(state[key], self.device) for key in ("initial_prior", "dp_state")
             )

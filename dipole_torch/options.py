@@ -39,6 +39,8 @@ class DipoleOptions:
                            policies
     ``accept_unjudged``    no: a candidate the probe       no
                            cannot judge is forgotten
+    ``unjudged_share``     ``None`` (with                  ``None``
+                           ``accept_unjudged``: no cap)
     ``max_policies``       8 active policies at most       no limit
     ``max_sampled``        4 policies sampled in an        no limit
                            iteration (the others wait)
@@ -96,6 +98,11 @@ class DipoleOptions:
             ``max_sampled=None``, every new policy sampled): the new policies take trials
             that a lone converging one needs, so early precision in higher dimensions
             drops (docs: Precision and coverage).
+        unjudged_share: with ``accept_unjudged``, the policies it accepted draw samples
+            only while they have drawn less than this share of the policy samples so far,
+            in (0, 1] (None: no cap); the others are sampled meanwhile. The policies that
+            passed the test keep the trials they converge with (see
+            mechanisms.scouting).
         max_policies: active policies at most (None: no limit).
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
         retire_std: retire a policy once its exploration std is below this times Σ_start's
@@ -133,6 +140,7 @@ class DipoleOptions:
     hill_valley: bool = True
     pair_points: int = 1
     accept_unjudged: bool = False
+    unjudged_share: float | None = None
     max_policies: int | None = 8
     max_sampled: int | None = 4
     retire_std: float = 1e-3
@@ -151,6 +159,11 @@ class DipoleOptions:
             raise ValueError(
                 "accept_unjudged=True needs hill_valley=True: without the hill-valley test "
                 "no candidate is judged"
+            )
+        if self.unjudged_share is not None and not self.accept_unjudged:
+            raise ValueError(
+                f"unjudged_share={self.unjudged_share} needs accept_unjudged=True: it caps "
+                "the samples of the policies accepted unjudged"
             )
         if self.matching == "replace" and self.retire_std > 0:
             raise ValueError(
@@ -223,6 +236,14 @@ def _floor(value, name: str) -> None:
         raise ValueError(f"{name} must lie in (0, 1), got {value!r}")
 
 
+def _optional_share(value, name: str) -> None:
+    if value is None:
+        return
+    check_real(value, name)
+    if not 0.0 < value <= 1.0:
+        raise ValueError(f"{name} must lie in (0, 1] or be None, got {value!r}")
+
+
 def _optional_count(value, name: str) -> None:
     check_count(value, name, optional=True)
 
@@ -267,6 +288,7 @@ _CHECKS = {
     "hill_valley": check_flag,
     "pair_points": check_count,
     "accept_unjudged": check_flag,
+    "unjudged_share": _optional_share,
     "max_policies": _optional_count,
     "max_sampled": _optional_count,
     "retire_std": _non_negative,

@@ -97,6 +97,8 @@ def options(rng: random.Random) -> tuple[str, dict]:
     variant = "paper" if rng.random() < 0.15 else "default"
     if changes and changes["hill_valley"]:  # (drawn last: earlier seeds keep their cases)
         changes["accept_unjudged"] = rng.choice([False, True])
+        if changes["accept_unjudged"]:
+            changes["unjudged_share"] = rng.choice([None, 0.05, 0.5])
     return variant, changes
 
 

@@ -167,6 +167,7 @@ def test_a_candidate_beyond_reach_that_the_probe_cannot_judge_is_accepted_on_req
     assert two_policies_and_a_candidate(False, 0.1).num_policies == 1  # forgotten
     opt = two_policies_and_a_candidate(True, 0.1)
     assert opt.policy_means[:, 0].tolist() == [0.0, 3.005]
+    assert opt.policy_set.unjudged.tolist() == [False, True]  # marked for unjudged_share
     # Within reach of its own start (std 2: the policy 1.5 stds away) the probe's "no
     # valley" stands, and the candidate is forgotten.
     assert two_policies_and_a_candidate(True, 2.0).num_policies == 1
@@ -179,7 +180,8 @@ def test_accept_unjudged_needs_the_hill_valley_test_and_a_flag():
         Dipole(torch.zeros(2, dtype=DTYPE), 1.0, accept_unjudged="yes")
 
 
-def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactly(tmp_path):
+@pytest.mark.parametrize("share", [None, 0.05])
+def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactly(tmp_path, share):
     def run(opt, trials):
         while opt.trials < trials:
             theta = opt.ask()
@@ -189,7 +191,7 @@ def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactl
         return Dipole(
             torch.tensor([0.5], dtype=DTYPE), torch.tensor([[0.25**2]], dtype=DTYPE),
             bounds=(0.0, 1.0), accept_unjudged=True, max_sampled=None,
-            generator=torch.Generator().manual_seed(0),
+            unjudged_share=share, generator=torch.Generator().manual_seed(0),
         )  # fmt: skip
 
     whole = make()
@@ -201,6 +203,9 @@ def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactl
     second.load_state_dict(torch.load(tmp_path / "opt.pt", weights_only=False))
     run(second, 600)
     assert torch.equal(second.policy_means, whole.policy_means)
+    assert second.scouting.unjudged_samples == whole.scouting.unjudged_samples
+    if share is not None:
+        assert whole.scouting.unjudged_samples > 0  # the count is part of what resumed
     # A checkpoint from before the option's queue holds none: it loads with no candidate
     # marked.
     state = {k: v for k, v in first.state_dict().items() if k != "candidate_unjudged"}

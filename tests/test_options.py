@@ -122,6 +122,18 @@ def test_a_combination_that_cannot_run_is_refused_naming_the_conflict():
         ({"refine": 1.0}, ValueError, r"refine must lie in \[0, 1\), got 1.0"),
         ({"refine": -0.1}, ValueError, r"refine must lie in \[0, 1\), got -0.1"),
         ({"refine_share": 0.0}, ValueError, r"refine_share must lie in \(0, 1\)"),
+        ({"unjudged_share": 0.5}, ValueError, "unjudged_share=0.5 needs accept_unjudged=True"),
+        (
+            {"unjudged_share": 0.0, "accept_unjudged": True},
+            ValueError,
+            r"unjudged_share must lie in \(0, 1\] or be None, got 0.0",
+        ),
+        (
+            {"unjudged_share": math.nan, "accept_unjudged": True},
+            ValueError,
+            r"unjudged_share must lie in \(0, 1\]",
+        ),
+        ({"unjudged_share": "half"}, ValueError, "unjudged_share must be a real number"),
         ({"alhpa": 2.0}, TypeError, "unknown DIPOLE option.*'alhpa'"),
     ],
 )

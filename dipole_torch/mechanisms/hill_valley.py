@@ -8,7 +8,9 @@ A probe worse than both ends shows a valley between them. Two uses:
   finds a valley (while fewer than ``max_policies`` are active); with ``accept_unjudged``
   also when no valley shows but the two lie beyond each other's reach (``PAIR_REACH``). A
   candidate on the hill of a retired policy with a better sample than that policy's best
-  replaces it: the retired policy stopped short of the top.
+  replaces it: the retired policy stopped short of the top. A policy accepted that way
+  alone is marked (the policy field ``unjudged``), for ``unjudged_share`` to cap its samples
+  (``mechanisms.scouting``).
 * Every fourth clustering, each active policy is probed against its nearest neighbour
   (``pair_points`` probes along the way) when one of the two explores within
   ``PAIR_REACH`` stds of the other's best sample; of two on one hill the worse goes.
@@ -27,6 +29,7 @@ from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE, mahalanobis
 from dipole_torch.mechanisms.retirement import exploration_distance
+from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
     from dipole_torch.search import PolicySearch, TellBatch
@@ -46,6 +49,9 @@ class NoVetting:
     """Every new component becomes a policy; no probes."""
 
     vets_new_policies = False
+
+    def register(self, search: PolicySearch) -> None:
+        pass
 
     def probes(self) -> Tensor | None:
         return None
@@ -131,6 +137,12 @@ class HillValley(NoVetting):
         self.pair_index = torch.empty(0, 2, dtype=torch.long, device=device)
         self.pair_probes = vector
 
+    def register(self, search: PolicySearch) -> None:
+        """With ``accept_unjudged``, the policy field ``unjudged``: whether a policy was
+        accepted with no valley shown (beyond reach of its partner)."""
+        if self.accept_unjudged:
+            search.policy_set.register("unjudged", PolicyField(default=False, dtype=torch.bool))
+
     # ------------------------------------------------------------------ ask and tell
     def probes(self) -> Tensor | None:
         """``[P, D]`` the probes of the next ask: the candidates', then the pairs'."""
@@ -212,10 +224,12 @@ class HillValley(NoVetting):
                 & (self.candidate_rewards > search.policy_best_rewards[partners])
             )
             accept = valley | refutes
+            unjudged = None
             if self.accept_unjudged:
-                accept = accept | self.candidate_unjudged
+                unjudged = self.candidate_unjudged & ~accept
+                accept = accept | unjudged
             self._place(search, refutes)
-            accepted = self._accept(search, accept)
+            accepted = self._accept(search, accept, unjudged)
             replaced = partners[accepted[refutes[accepted]]].unique()
             if replaced.numel():
                 # Pair probes were chosen by index: they no longer apply.
@@ -245,10 +259,12 @@ class HillValley(NoVetting):
         factor = (half_gap / relative.clamp_min(1e-300)).clamp(max=1.0).square()
         self.candidate_covariances = factor[:, None, None] * self.candidate_covariances
 
-    def _accept(self, search: PolicySearch, accept: Tensor) -> Tensor:
+    def _accept(
+        self, search: PolicySearch, accept: Tensor, unjudged: Tensor | None = None
+    ) -> Tensor:
         """New policies from the ``accept``-ed candidates ``[C]`` (within ``max_policies``,
-        the best first); the candidate queue is emptied. Returns the indices of the
-        candidates that became policies."""
+        the best first), those accepted ``unjudged [C]`` marked so; the candidate queue is
+        emptied. Returns the indices of the candidates that became policies."""
         index = accept.nonzero().squeeze(-1)
         if self.max_policies is not None:
             room = max(self.max_policies - sum(search.policy_set.active_flags()), 0)
@@ -256,7 +272,15 @@ class HillValley(NoVetting):
         n = index.numel()
         if n:
             k = search.num_policies
-            search.policy_set.extend(self.candidate_means[index], self.candidate_covariances[index])
+            marks = {}
+            if self.accept_unjudged:
+                marks["unjudged"] = (
+                    unjudged[index] if unjudged is not None
+                    else torch.zeros(n, dtype=torch.bool, device=search.device)
+                )  # fmt: skip
+            search.policy_set.extend(
+                self.candidate_means[index], self.candidate_covariances[index], **marks
+            )
             search.archive.append(
                 self.candidate_samples[index],
                 self.candidate_rewards[index],

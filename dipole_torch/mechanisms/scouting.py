@@ -6,6 +6,12 @@
   reshapes the policies. Spread over every policy at once, a budget of a few hundred trials
   converged none of them on most 5-D landscapes with 8 optima; in turn, the first ones
   converge and the later ones still get theirs.
+* A share for the policies accepted unjudged (``unjudged_share``, with the hill-valley
+  test's ``accept_unjudged``): they draw samples only while they have drawn less than that
+  share of the policy samples so far (then all of them at once); meanwhile only the others
+  are sampled. In 10-D a policy converging on its optimum needs nearly every early trial,
+  which half a dozen new policies beyond the probe's reach would otherwise share; the cap
+  keeps it its trials and still gives the new ones theirs (docs: Precision and coverage).
 * Scouts (``explore``): draws from N(θ0, Σ_start) that belong to no policy yet, ``explore``
   per policy sample on average; the clustering puts a scout that lies on another hill in a
   component of its own, a candidate policy. When every policy has retired, the next ask is
@@ -30,7 +36,7 @@ from dipole_torch.archive import NO_POLICY
 from dipole_torch.sampling import draw_gaussian, uniforms
 
 if TYPE_CHECKING:
-    from dipole_torch.search import PolicySearch
+    from dipole_torch.search import PolicySearch, TellBatch
 
 __all__ = ["Scouting"]
 
@@ -43,22 +49,66 @@ class Scouting:
         max_sampled: policies sampled in one ask at most (``None``: every active one).
         restarts: ``"box"`` (a restart's scouts uniform in a finite box) or ``"start"``
             (from N(θ0, Σ_start)).
+        unjudged_share: the share of the policy samples that the policies accepted unjudged
+            (the policy field ``unjudged``, which the hill-valley test keeps) may draw, in
+            (0, 1] (``None``: no cap).
+
+    Attributes:
+        unjudged_samples: the policy samples drawn so far by policies accepted unjudged
+            (counted with ``unjudged_share`` only; kept in checkpoints).
     """
 
-    def __init__(self, explore: float, max_sampled: int | None, restarts: str):
+    def __init__(
+        self,
+        explore: float,
+        max_sampled: int | None,
+        restarts: str,
+        unjudged_share: float | None = None,
+    ):
         self.explore = float(explore)
         self.max_sampled = None if max_sampled is None else int(max_sampled)
         self.restarts = restarts
+        self.unjudged_share = None if unjudged_share is None else float(unjudged_share)
+        self.unjudged_samples = 0
 
     def sampled_policies(self, search: PolicySearch) -> Tensor:
         """``[K_sampled]`` the active policies that draw a sample at the next ask: all of
-        them, or the ``max_sampled`` with the best kept returns (ties: the lower index)."""
-        index = search.active.nonzero().squeeze(-1)
-        if self.max_sampled is None or sum(search.policy_set.active_flags()) <= self.max_sampled:
+        them, or the ``max_sampled`` with the best kept returns (ties: the lower index); with
+        ``unjudged_share`` reached, only those not accepted unjudged (while any is active)."""
+        active = search.active
+        if self._unjudged_wait(search):
+            active = active & ~search.policy_set.unjudged
+        index = active.nonzero().squeeze(-1)
+        if self.max_sampled is None or index.numel() <= self.max_sampled:
             return index
         best = search.policy_best_rewards[index]
         ahead = torch.argsort(best, descending=True, stable=True)[: self.max_sampled]
         return index[ahead].sort().values
+
+    def _unjudged_wait(self, search: PolicySearch) -> bool:
+        """Whether the policies accepted unjudged wait at the next ask: they have drawn
+        their share of the policy samples, and another active policy can draw instead."""
+        if self.unjudged_share is None or "unjudged" not in search.policy_set.field_names:
+            return False
+        if self.unjudged_samples < self.unjudged_share * search.policy_samples:
+            return False
+        return bool((search.active & ~search.policy_set.unjudged).any())
+
+    def observe(self, search: PolicySearch, batch: TellBatch) -> None:
+        """Count the told samples of policies accepted unjudged (policies numbered as
+        asked)."""
+        if self.unjudged_share is None or "unjudged" not in search.policy_set.field_names:
+            return
+        owner = batch.owner[: batch.policy_rows]
+        if owner.numel():
+            self.unjudged_samples += int(search.policy_set.unjudged[owner].sum())
+
+    def state_dict(self) -> dict[str, int]:
+        return {"unjudged_samples": self.unjudged_samples}
+
+    def load_state_dict(self, state: dict) -> None:
+        """(A checkpoint from before the share: none counted.)"""
+        self.unjudged_samples = int(state.get("unjudged_samples", 0))
 
     def scouts(self, search: PolicySearch, sampled: int) -> int:
         """Scouts in the next ask, whose ``sampled`` policies draw a sample each: ``explore``

@@ -76,6 +76,8 @@ ADDED_KEYS = {
     "algo.optimizer.restarts": "start",
     # Runs from before a clustering of scouts alone ran one sweep.
     "algo.optimizer.scout_sweeps": None,
+    # Runs from before the policies accepted unjudged could be held to a share.
+    "algo.optimizer.unjudged_share": None,
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
