@@ -110,7 +110,7 @@ METHODS = ("DIPOLE", "DIPOLE (paper)", "PoWER", "IPOP-CMA-ES", "NMMSO", "random 
 # Run when asked for (--methods): DIPOLE with every clustering running all its sweeps
 # (``settle=None, scout_sweeps=None``; the default ends one once its partition settles and
 # gives a clustering of scouts alone one sweep), and DIPOLE with the
-# options for covering alternatives (``accept_unjudged=True, max_sampled=None``, as
+# options for covering alternatives (the preset configs/algo/dipole_coverage.yaml, as
 # bench_viapoint_qd.py's "DIPOLE (coverage)"), to measure each option's effect beside the
 # defaults.
 OPT_IN = ("DIPOLE (all sweeps)", "DIPOLE (coverage)")
@@ -306,8 +306,16 @@ def run_dipole_all_sweeps(landscape: Landscape, budgets: Sequence[int], seed: in
     return run_dipole(landscape, budgets, seed, settle=None, scout_sweeps=None)
 
 
+def coverage_options() -> dict:
+    """The options ``configs/algo/dipole_coverage.yaml`` sets (``algo=dipole_coverage``)."""
+    from omegaconf import OmegaConf
+
+    preset = OmegaConf.load(Path(__file__).parents[1] / "configs/algo/dipole_coverage.yaml")
+    return OmegaConf.to_container(preset.optimizer)
+
+
 def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
-    return run_dipole(landscape, budgets, seed, accept_unjudged=True, max_sampled=None)
+    return run_dipole(landscape, budgets, seed, **coverage_options())
 
 
 def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:

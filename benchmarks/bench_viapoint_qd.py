@@ -4,6 +4,7 @@ oracle behaviour descriptor.
 
     python benchmarks/bench_viapoint_qd.py                    # 10 seeds, 300 and 1000 trials
     python benchmarks/bench_viapoint_qd.py --seeds 2 --methods DIPOLE --json /tmp/qd.json
+    python benchmarks/bench_viapoint_qd.py --methods "DIPOLE (coverage)" --keep-others
 
 **Task**: ``configs/task/viapoint.yaml`` (the simulated Barrett WAM, D = 9, 2 alternative
 viapoints at each of 3 pass times: 8 routes of return 1), as in
@@ -19,7 +20,7 @@ that route with return ≥ r (r = 0.9, the paper's count, and 0.95). Returned so
   routes: it sees returns only.
 * **DIPOLE (coverage)**: the same with the options a user sets to cover alternatives rather
   than converge on each (``configs/algo/dipole_coverage.yaml``: ``accept_unjudged=True``,
-  ``max_sampled=None``).
+  ``max_sampled=None``, ``unjudged_share=0.5``).
 * **MAP-Elites** and **CMA-MAE** (pyribs 0.12): the elites of an archive with one cell per
   route, **the route given as the behaviour descriptor: an oracle** that DIPOLE does not
   get (it would not exist for a task whose alternatives are unknown). The elites are
@@ -255,10 +256,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--workers", type=int, default=2, help="processes")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
+    from bench_multioptima import _version, add_keep_others, machine, run_keeping_others
+
+    add_keep_others(parser)
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in SHOWN if m in args.methods]
-    from bench_multioptima import _version, machine, run_tasks
 
     tasks = [(m, s, budgets) for m in methods for s in range(args.seeds)]
 
@@ -272,7 +275,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         )
         return f"{tag}: {found} routes ≥ {LEVELS[0]} ({case['seconds']:.0f} s)"
 
-    cases, wall = run_tasks(_worker, tasks, args.workers, progress)
+    grid = {"seeds": args.seeds, "budgets": budgets, "levels": list(LEVELS)}
+    cases, wall, methods = run_keeping_others(_worker, tasks, args, grid, methods, SHOWN, progress)
     order = {m: i for i, m in enumerate(SHOWN)}
     cases.sort(key=lambda c: (order[c["method"]], c["seed"]))
     text, summary = summarize(cases, methods, budgets)

@@ -375,7 +375,7 @@ def multioptima_rows() -> list[str]:
     names = {
         "DIPOLE": "DIPOLE (default)",
         "DIPOLE (paper)": "DIPOLE (paper)",
-        "DIPOLE (coverage)": "DIPOLE (coverage: `accept_unjudged=True`, `max_sampled=None`)",
+        "DIPOLE (coverage)": "DIPOLE (coverage: `algo=dipole_coverage`)",
         "PoWER": "PoWER (decaying exploration)",
         "IPOP-CMA-ES": "IPOP-CMA-ES (`cma`)",
         "NMMSO": "NMMSO (`pynmmso`)",

@@ -304,9 +304,10 @@ def test_the_configs_extend_the_schemas_and_build_their_targets(tmp_path):
     assert default.options.max_policies is None and default.options.explore == 0.0
 
 
-def test_the_coverage_preset_is_the_library_variant_with_two_options_changed():
+def test_the_coverage_preset_is_the_library_variant_with_three_options_changed():
     """``algo=dipole_coverage`` builds a Dipole whose options are the defaults but for
-    ``accept_unjudged=True`` and ``max_sampled=None`` (the two the docs' coverage rows use)."""
+    ``accept_unjudged=True``, ``max_sampled=None`` and ``unjudged_share=0.5`` (the three the
+    docs' coverage rows use)."""
     from dipole_torch import DipoleOptions
 
     cfg = compose_config("algo=dipole_coverage").algo
@@ -318,8 +319,9 @@ def test_the_coverage_preset_is_the_library_variant_with_two_options_changed():
         for f in dataclasses.fields(DipoleOptions)
         if getattr(opt.options, f.name) != getattr(DipoleOptions(), f.name)
     }
-    assert changed == {"accept_unjudged", "max_sampled"}
+    assert changed == {"accept_unjudged", "max_sampled", "unjudged_share"}
     assert opt.options.accept_unjudged is True and opt.options.max_sampled is None
+    assert opt.options.unjudged_share == 0.5
     # An override still applies on top of the preset.
     cfg = compose_config("algo=dipole_coverage", "algo.optimizer.max_sampled=6").algo
     assert cfg.optimizer.max_sampled == 6 and cfg.optimizer.accept_unjudged
