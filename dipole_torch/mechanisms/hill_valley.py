@@ -272,12 +272,8 @@ class HillValley(NoVetting):
         n = index.numel()
         if n:
             k = search.num_policies
-            marks = {}
-            if self.accept_unjudged:
-                marks["unjudged"] = (
-                    unjudged[index] if unjudged is not None
-                    else torch.zeros(n, dtype=torch.bool, device=search.device)
-                )  # fmt: skip
+            # (Not given: every new policy at the field's default, judged.)
+            marks = {} if unjudged is None else {"unjudged": unjudged[index]}
             search.policy_set.extend(
                 self.candidate_means[index], self.candidate_covariances[index], **marks
             )

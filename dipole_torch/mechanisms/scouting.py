@@ -75,29 +75,28 @@ class Scouting:
         """``[K_sampled]`` the active policies that draw a sample at the next ask: all of
         them, or the ``max_sampled`` with the best kept returns (ties: the lower index); with
         ``unjudged_share`` reached, only those not accepted unjudged (while any is active)."""
-        active = search.active
-        if self._unjudged_wait(search):
-            active = active & ~search.policy_set.unjudged
-        index = active.nonzero().squeeze(-1)
+        index = self._may_draw(search).nonzero().squeeze(-1)
         if self.max_sampled is None or index.numel() <= self.max_sampled:
             return index
         best = search.policy_best_rewards[index]
         ahead = torch.argsort(best, descending=True, stable=True)[: self.max_sampled]
         return index[ahead].sort().values
 
-    def _unjudged_wait(self, search: PolicySearch) -> bool:
-        """Whether the policies accepted unjudged wait at the next ask: they have drawn
-        their share of the policy samples, and another active policy can draw instead."""
-        if self.unjudged_share is None or "unjudged" not in search.policy_set.field_names:
-            return False
-        if self.unjudged_samples < self.unjudged_share * search.policy_samples:
-            return False
-        return bool((search.active & ~search.policy_set.unjudged).any())
+    def _may_draw(self, search: PolicySearch) -> Tensor:
+        """``[K]`` the active policies, less those accepted unjudged once they have drawn
+        their share of the policy samples and another active policy can draw instead.
+        (``unjudged_share`` needs ``accept_unjudged``, which registers the field.)"""
+        active = search.active
+        share = self.unjudged_share
+        if share is None or self.unjudged_samples < share * search.policy_samples:
+            return active
+        others = active & ~search.policy_set.unjudged
+        return others if bool(others.any()) else active
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """Count the told samples of policies accepted unjudged (policies numbered as
         asked)."""
-        if self.unjudged_share is None or "unjudged" not in search.policy_set.field_names:
+        if self.unjudged_share is None:
             return
         owner = batch.owner[: batch.policy_rows]
         if owner.numel():
