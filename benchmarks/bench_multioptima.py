@@ -77,6 +77,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import importlib
 import importlib.metadata
 import json
@@ -700,14 +701,16 @@ def run_tasks(
 ) -> tuple[list[dict], float]:
     """``task`` on every item of ``tasks`` in ``workers`` spawned processes (one torch
     thread each; 0: in this process, for debugging), a ``progress`` line on stderr as each
-    finishes. Returns the results in the order they finished and the wall seconds."""
+    finishes. Returns the results in the order they finished, each with the ``machine`` it
+    ran on (a ``--keep-others`` report mixes cases of several runs), and the wall seconds."""
     start = time.perf_counter()
+    stamped = functools.partial(_stamped, task)
     if workers == 0:
         _init_worker()
-        pool, results = None, map(task, tasks)
+        pool, results = None, map(stamped, tasks)
     else:
         pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker)
-        results = pool.imap_unordered(task, tasks)
+        results = pool.imap_unordered(stamped, tasks)
     cases = []
     for i, case in enumerate(results, 1):
         cases.append(case)
@@ -716,6 +719,11 @@ def run_tasks(
         pool.close()
         pool.join()
     return cases, time.perf_counter() - start
+
+
+def _stamped(task: Callable[[tuple], dict], item: tuple) -> dict:
+    """``task(item)`` with the ``machine`` that ran it (in the worker: its one thread)."""
+    return task(item) | {"machine": machine()}
 
 
 def write_report(path: Path, config: dict, wall: float, summary: dict, cases: list) -> None:
