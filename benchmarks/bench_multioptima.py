@@ -321,8 +321,7 @@ def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int)
 
 def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
     theta0, sigma_start, bounds = _start(landscape)
-    build = getattr(Dipole, "paper", Dipole)  # the plain constructor until Dipole.paper exists
-    opt = build(
+    opt = Dipole.paper(
         theta0,
         sigma_start,
         reward_range=landscape.reward_range,
