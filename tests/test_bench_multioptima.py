@@ -1,5 +1,7 @@
 """The multi-optima benchmark's landscapes, success criterion and a tiny end-to-end run."""
 
+import json
+
 import pytest
 import torch
 
@@ -66,3 +68,18 @@ def test_nmmso_snapshot_equals_a_run_halted_at_the_smaller_budget():
     longer = bench.run_nmmso(landscape, [120, 300], seed=9)
     assert torch.equal(alone[120][0], longer[120][0]) and alone[120][1] == 120
     assert longer[300][1] == 300
+
+
+def test_keep_others_keeps_each_case_with_the_machine_that_ran_it(tmp_path, capsys):
+    path = tmp_path / "report.json"
+    grid = ["--dims", "2", "--ks", "2", "--seeds", "1", "--budgets", "40", "--workers", "0"]
+    bench.main([*grid, "--methods", "random search", "PoWER", "--json", str(path)])
+    report = json.loads(path.read_text())
+    assert [c["machine"] for c in report["cases"]] == [bench.machine()] * 2  # one thread here
+    earlier = {"architecture": "elsewhere", "torch_cpu_capability": "NONE", "torch_threads": 1}
+    for case in report["cases"]:
+        case["machine"] = earlier  # as if both had run on another machine
+    path.write_text(json.dumps(report))
+    bench.main([*grid, "--methods", "PoWER", "--keep-others", "--json", str(path)])
+    machines = {c["method"]: c["machine"] for c in json.loads(path.read_text())["cases"]}
+    assert machines == {"random search": earlier, "PoWER": bench.machine()}
