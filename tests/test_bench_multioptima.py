@@ -70,7 +70,7 @@ def test_nmmso_snapshot_equals_a_run_halted_at_the_smaller_budget():
     assert longer[300][1] == 300
 
 
-def test_keep_others_keeps_each_case_with_the_machine_that_ran_it(tmp_path, capsys):
+def test_keep_others_keeps_each_case_with_the_machine_that_ran_it(tmp_path):
     path = tmp_path / "report.json"
     grid = ["--dims", "2", "--ks", "2", "--seeds", "1", "--budgets", "40", "--workers", "0"]
     bench.main([*grid, "--methods", "random search", "PoWER", "--json", str(path)])
