@@ -133,7 +133,7 @@ class Dipole(PolicySearch):
         )  # fmt: skip
         self.retirement = Retirement(
             options.retire_std, options.merge_radius, self.exploration.keeps_covariance,
-            options.refine, options.refine_share,
+            options.refine, options.refine_share, options.retire_spread,
         )  # fmt: skip
         self.matching = ReplaceMatching() if options.matching == "replace" else OverlapMatching()
         self.exploration.register(self)

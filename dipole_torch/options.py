@@ -46,6 +46,9 @@ class DipoleOptions:
                            iteration (the others wait)
     ``retire_std``         1e-3: stop sampling a           0 (never)
                            converged policy
+    ``retire_spread``      1e-4: stop sampling a policy    0
+                           whose kept returns agree to
+                           1e-4 of the returns' range
     ``refine``             0.1: wake retired policies      0 (never)
                            for a 10× finer threshold
                            once none is active
@@ -106,7 +109,13 @@ class DipoleOptions:
         max_policies: active policies at most (None: no limit).
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
         retire_std: retire a policy once its exploration std is below this times Σ_start's
-            (0: never).
+            (0: no policy is ever retired).
+        retire_spread: also retire a policy exploring below a tenth of Σ_start's std once
+            its M kept returns spread less than this fraction of the range of every return
+            told, in [0, 1] (0: the std alone); lowered with ``retire_std`` at each wake. A
+            broad optimum's returns flatten long before its exploration is small: its trials
+            go to finding others, and a wake refines it later (see
+            mechanisms.retirement).
         refine: once no policy is active, retired ones are woken with their threshold times
             this, in [0, 1) (0: never woken); see mechanisms.retirement.Waking.
         refine_share: a wake starts only while woken policies have taken less than this
@@ -144,6 +153,7 @@ class DipoleOptions:
     max_policies: int | None = 8
     max_sampled: int | None = 4
     retire_std: float = 1e-3
+    retire_spread: float = 1e-4
     refine: float = 0.1
     refine_share: float = 0.2
     merge_radius: float = 1.0
@@ -196,6 +206,7 @@ PAPER: dict[str, Any] = dict(
     max_policies=None,
     max_sampled=None,
     retire_std=0.0,
+    retire_spread=0.0,
     refine=0.0,
     merge_radius=0.0,
     hill_valley=False,
@@ -292,6 +303,7 @@ _CHECKS = {
     "max_policies": _optional_count,
     "max_sampled": _optional_count,
     "retire_std": _non_negative,
+    "retire_spread": _unit_interval,
     "refine": _fraction,
     "refine_share": _floor,
     "merge_radius": _non_negative,

@@ -37,7 +37,9 @@ def test_asked_rows_and_policy_means_stay_in_the_box(name):
         clipped += int(((theta == LOWER) | (theta == UPPER)).any(-1).sum())
         opt.tell(theta, uphill(theta))
         assert ((opt.policy_means >= LOWER) & (opt.policy_means <= UPPER)).all()
-    assert clipped > 50  # the box was in the way (exploration std 1 against widths 3 and 0.5)
+    # The box was in the way (exploration std 1 against widths 3 and 0.5). (DIPOLE retires
+    # its policy soon after it reaches the corner: the clipped samples' returns are equal.)
+    assert clipped > 20
     if name != "dipole_paper":  # (the paper's variant never shrinks its exploration)
         assert torch.allclose(opt.best()[0], UPPER, atol=1e-3)
 

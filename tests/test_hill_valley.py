@@ -192,6 +192,7 @@ def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactl
             torch.tensor([0.5], dtype=DTYPE), torch.tensor([[0.25**2]], dtype=DTYPE),
             bounds=(0.0, 1.0), accept_unjudged=True, max_sampled=None,
             unjudged_share=share, generator=torch.Generator().manual_seed(0),
+            retire_spread=0.0,  # (with it, every hill is judged: none accepted unjudged)
         )  # fmt: skip
 
     whole = make()

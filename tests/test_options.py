@@ -122,6 +122,9 @@ def test_a_combination_that_cannot_run_is_refused_naming_the_conflict():
         ({"refine": 1.0}, ValueError, r"refine must lie in \[0, 1\), got 1.0"),
         ({"refine": -0.1}, ValueError, r"refine must lie in \[0, 1\), got -0.1"),
         ({"refine_share": 0.0}, ValueError, r"refine_share must lie in \(0, 1\)"),
+        ({"retire_spread": 1.5}, ValueError, r"retire_spread must lie in \[0, 1\], got 1.5"),
+        ({"retire_spread": -1e-4}, ValueError, r"retire_spread must lie in \[0, 1\]"),
+        ({"retire_spread": math.inf}, ValueError, r"retire_spread must lie in \[0, 1\]"),
         ({"unjudged_share": 0.5}, ValueError, "unjudged_share=0.5 needs accept_unjudged=True"),
         (
             {"unjudged_share": 0.0, "accept_unjudged": True},
@@ -168,6 +171,7 @@ EDGES = {
     "early retirement, wide merging": dict(
         retire_std=0.5, refine=0.9, merge_radius=10.0, pair_points=5
     ),  # fmt: skip
+    "retirement on any spread, by the std never": dict(retire_spread=1.0, retire_std=1e-300),
 }
 
 

@@ -1,11 +1,13 @@
 """A policy's life after it was found: retirement once converged, waking to refine it further,
 merging of duplicates, and the restart of a policy whose samples straddle two hills.
 
-* Retirement (``retire_std``): a policy whose exploration std has shrunk below its threshold,
-  at first ``retire_std`` times Σ_start's, stops being sampled; it stays among the policies,
-  and its trials go to the others.
+* Retirement (``retire_std``, ``retire_spread``): a policy stops being sampled once its
+  exploration std has shrunk below its threshold, at first ``retire_std`` times Σ_start's,
+  or once its M kept returns spread less than its other threshold, at first
+  ``retire_spread`` times the range of every return told; it stays among the policies, and
+  its trials go to the others.
 * Waking (``refine``, ``refine_share``; ``Waking``): once no policy is active, the
-  retired ones at the coarsest threshold are sampled again, each with its threshold times
+  retired ones at the coarsest thresholds are sampled again, each with both thresholds times
   ``refine`` (one more decade with 0.1), when the trials they have taken are within
   ``refine_share`` of the trials after the first convergence; otherwise the run restarts
   (scouts). A converged policy is then not frozen for good: its precision keeps growing
@@ -33,7 +35,7 @@ from dipole_torch.policy_set import PolicyField
 if TYPE_CHECKING:
     from dipole_torch.search import PolicySearch, TellBatch
 
-__all__ = ["NoWaking", "Retirement", "Waking", "exploration_distance"]
+__all__ = ["NoWaking", "Retirement", "ReturnRange", "Waking", "exploration_distance"]
 
 # A policy whose exploration std is below this fraction of |θ| + Σ_start's std on every axis
 # samples θ only to rounding (float64 resolves 2.2e-16 relative): it is never woken again.
@@ -44,6 +46,11 @@ FINEST_STD = 1e-12
 # range has a gain still to show (below it: 1e-9 of the range, finer than any accuracy
 # asked of the benchmarks, 5e-8 of the range at the finest).
 VISIBLE_GAIN = 1e-9
+# The spread rule judges only a policy exploring below this fraction of Σ_start's std: one
+# exploring wider has not converged, whatever its kept returns show (crawling along a ridge
+# with a covariance stretched across it, its M best returns can agree to 1e-4 of the range
+# while its largest std is still Σ_start's).
+SPREAD_GATE = 0.1
 
 
 def exploration_distance(search: PolicySearch, diff: Tensor, rows: Tensor | None = None) -> Tensor:
@@ -62,14 +69,53 @@ def _spread(search: PolicySearch) -> Tensor:
     return archive.per_policy("amax", k) - archive.per_policy("amin", k)
 
 
+class ReturnRange:
+    """The range of every return told since the world last changed: the scale of the
+    retirement by spread and of a wake's visible gain."""
+
+    def __init__(self):
+        self.low, self.high = math.inf, -math.inf
+
+    def observe(self, rewards: Tensor) -> None:
+        """Widen the range by a told batch's ``rewards [B]``."""
+        returns = rewards.tolist()
+        self.low = min(self.low, min(returns))
+        self.high = max(self.high, max(returns))
+
+    def fraction(self, fraction: Tensor | float) -> Tensor | float:
+        """``fraction`` (at most 1) of the range's width; 0 before any return, or while
+        every return was equal."""
+        if not self.high > self.low:
+            return 0.0 * fraction
+        width = self.high - self.low
+        if math.isfinite(width):
+            return fraction * width
+        return fraction * self.high - fraction * self.low  # (the width overflowed: ±9e307)
+
+    def forget(self) -> None:
+        """The world changed (``reevaluate``): measured again from the next tell (the old
+        world's range would judge the new returns' spread)."""
+        self.low, self.high = math.inf, -math.inf
+
+    # (Saved under the names of the waking's fields, which held the range before it moved
+    # here: a checkpoint from then resumes with its range.)
+    def state_dict(self) -> dict:
+        return {"waking_low": self.low, "waking_high": self.high}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.low = float(state.get("waking_low", math.inf))
+        self.high = float(state.get("waking_high", -math.inf))
+
+
 class NoWaking:
-    """Retired policies stay retired: every one's threshold is ``retire_std``."""
+    """Retired policies stay retired: every one's thresholds are ``retire_std`` and
+    ``retire_spread``."""
 
     def register(self, search: PolicySearch) -> None:
         """Nothing to keep per policy."""
 
-    def thresholds(self, search: PolicySearch, retire_std: float) -> Tensor | float:
-        return retire_std
+    def thresholds(self, search: PolicySearch, threshold: float) -> Tensor | float:
+        return threshold
 
     def refining(self, search: PolicySearch) -> Tensor:
         """``[K]`` the policies that were woken (none)."""
@@ -99,7 +145,9 @@ class Waking(NoWaking):
     """Retired policies woken to converge one level further while trials remain.
 
     A policy retires once its exploration std is below ``retire_std · refine**n`` of
-    Σ_start's, n (field ``refinements``) the times it was woken. When no policy is active
+    Σ_start's, or its M kept returns spread less than ``retire_spread · refine**n`` of the
+    range of every return told, n (field ``refinements``) the times it was woken. When no
+    policy is active
     (every one retired, no candidate accepted), retired policies are woken, n + 1 each, and
     sampled again with the exploration they retired with (the success rule goes on
     shrinking it):
@@ -126,7 +174,7 @@ class Waking(NoWaking):
     Per-policy field: ``refinements`` (n, starting at 0).
 
     Args:
-        refine: factor of the threshold at each wake, in (0, 1).
+        refine: factor of the thresholds at each wake, in (0, 1).
         share: the share of the trials after the first convergence (and of those since the
             last new policy) that woken policies may have taken when a wake starts, in
             (0, 1); the restarts that look for new optima take the rest. A wake is not cut
@@ -135,9 +183,11 @@ class Waking(NoWaking):
             Vincent 2-D and modified Rastrigin at 2000 trials, 0.3–0.8 of the trials after
             the first convergence). Holding it to ``share`` was measured and not kept: the
             docs' niching page says why.
+        returns: the range of the returns told (the retirement's), the scale of a visible
+            gain.
     """
 
-    def __init__(self, refine: float, share: float):
+    def __init__(self, refine: float, share: float, returns: ReturnRange):
         self.refine = float(refine)
         self.share = float(share)
         self.converged_at = -1  # trials when every policy was first retired (-1: not yet)
@@ -147,36 +197,34 @@ class Waking(NoWaking):
         self.barren_restart_trials = 0
         self.barren_refine_trials = 0
         self.known_ids = 0
-        self.low, self.high = math.inf, -math.inf  # every told return's range
+        self.returns = returns
         self._memo = Memo()
 
     def register(self, search: PolicySearch) -> None:
         search.policy_set.register("refinements", PolicyField(default=0, dtype=torch.long))
 
-    def thresholds(self, search: PolicySearch, retire_std: float) -> Tensor:
-        """``[K]`` each policy's retirement threshold, ``retire_std · refine**n`` (memoised
-        while the wake counts stand still: not to be written into)."""
+    def thresholds(self, search: PolicySearch, threshold: float) -> Tensor:
+        """``[K]`` each policy's retirement threshold, ``threshold · refine**n`` (for
+        ``retire_std`` or ``retire_spread``; memoised while the wake counts stand still: not
+        to be written into)."""
         refinements = search.policy_set.refinements
 
         def compute() -> Tensor:
             n = refinements.to(DTYPE)
-            return retire_std * torch.pow(torch.tensor(self.refine, dtype=DTYPE), n)
+            return threshold * torch.pow(torch.tensor(self.refine, dtype=DTYPE), n)
 
-        return self._memo.get(("thresholds", retire_std), (refinements,), compute)
+        return self._memo.get(("thresholds", threshold), (refinements,), compute)
 
     def refining(self, search: PolicySearch) -> Tensor:
         """``[K]`` the policies that were woken (n > 0)."""
         return search.policy_set.refinements > 0
 
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
-        """The returns' range; the trials of restarts and of woken policies."""
-        returns = batch.rewards.tolist()
-        self.low = min(self.low, min(returns))
-        self.high = max(self.high, max(returns))
+        """The trials of restarts and of woken policies."""
         if not search.started or self.converged_at < 0:
             return
         if not search.policy_set.any_active():
-            self.barren_restart_trials += len(returns)
+            self.barren_restart_trials += batch.rewards.shape[0]
             return
         owner = batch.owner[: batch.policy_rows]
         woken = int((search.policy_set.refinements[owner] > 0).sum())
@@ -196,7 +244,7 @@ class Waking(NoWaking):
     def visible_gain(self, search: PolicySearch) -> Tensor:
         """``[K]`` whether each policy's M kept returns spread at least
         ``VISIBLE_GAIN`` of the told returns' range."""
-        return _spread(search) >= VISIBLE_GAIN * (self.high - self.low)
+        return _spread(search) >= self.returns.fraction(VISIBLE_GAIN)
 
     def wake(self, search: PolicySearch) -> None:
         """With no policy active: wake retired policies as the class docstring says."""
@@ -228,19 +276,15 @@ class Waking(NoWaking):
         policies.refinements = torch.where(woken, policies.refinements + 1, policies.refinements)
         policies.active = policies.active | woken
 
-    def forget(self) -> None:
-        """The world changed (``reevaluate``): the returns' range is measured again from the
-        next tell (the old world's would judge the new returns' spread)."""
-        self.low, self.high = math.inf, -math.inf
-
     KEYS = ("converged_at", "refine_trials", "barren_restart_trials", "barren_refine_trials",
-            "known_ids", "low", "high")  # fmt: skip
+            "known_ids")  # fmt: skip
 
     def state_dict(self) -> dict:
         return {f"waking_{key}": getattr(self, key) for key in self.KEYS}
 
     def load_state_dict(self, state: dict) -> None:
-        fresh = Waking(self.refine, self.share)  # (a checkpoint from before waking: fresh)
+        # (A checkpoint from before waking: fresh.)
+        fresh = Waking(self.refine, self.share, self.returns)
         for key in self.KEYS:
             value = state.get(f"waking_{key}", getattr(fresh, key))
             setattr(self, key, type(getattr(fresh, key))(value))
@@ -250,7 +294,10 @@ class Retirement:
     """Retirement, merging and straddler restarts.
 
     Args:
-        retire_std: relative exploration std below which a policy is retired (0: never).
+        retire_std: relative exploration std below which a policy is retired (0: no policy
+            is ever retired).
+        retire_spread: fraction of the returns' range below which the spread of a policy's
+            M kept returns retires it too (0: the std alone).
         merge_radius: duplicate distance in exploration stds (0: never merge).
         restart_straddlers: restart policies whose samples straddle two hills (for
             exploration that is kept between clusterings).
@@ -266,12 +313,15 @@ class Retirement:
         restart_straddlers: bool,
         refine: float,
         refine_share: float,
+        retire_spread: float = 0.0,
     ):
         self.retire_std = float(retire_std)
+        self.retire_spread = float(retire_spread)
         self.merge_radius = float(merge_radius)
         self.restarts = bool(restart_straddlers)
+        self.returns = ReturnRange()
         wakes = self.retire_std > 0 and refine > 0
-        self.waking = Waking(refine, refine_share) if wakes else NoWaking()
+        self.waking = Waking(refine, refine_share, self.returns) if wakes else NoWaking()
         self._in_valley: tuple[bool, ...] | None = None  # within one tell: see observe
 
     def register(self, search: PolicySearch) -> None:
@@ -280,8 +330,10 @@ class Retirement:
     def observe(self, search: PolicySearch, batch: TellBatch) -> None:
         """Which policies' latest sample was worse than every one they keep (K flags, on
         the host: ``restart_straddlers`` of this tell branches on them), judged before the
-        samples are archived; the waking's trial counts."""
+        samples are archived; the returns' range; the waking's trial counts."""
         self._in_valley = None
+        if self.retire_std > 0:  # (else no rule reads the range)
+            self.returns.observe(batch.rewards)
         self.waking.observe(search, batch)
         if not (self.restarts and search.started):
             return
@@ -298,17 +350,35 @@ class Retirement:
     def forget(self) -> None:
         """The world changed: nothing judged on the old world's returns is kept."""
         self._in_valley = None
+        self.returns.forget()
         self.waking.forget()
 
     def converged(self, search: PolicySearch) -> Tensor:
         """``[K]`` whether each policy's exploration std is below its threshold times
-        Σ_start's (``retire_std``, lowered by each wake; never with ``retire_std = 0``, but
-        for a covariance lost to rounding, NaN, which must not be sampled)."""
+        Σ_start's (``retire_std``), or its M kept returns spread less than its other
+        threshold times the returns' range (``retire_spread``), both lowered by each wake;
+        never with ``retire_std = 0``, but for a covariance lost to rounding, NaN, which must
+        not be sampled."""
         return ~self._exploring(search)
 
     def _exploring(self, search: PolicySearch) -> Tensor:
-        """``[K]`` not ``converged``: the std at or above its threshold (NaN is not)."""
-        return search.relative_std() >= self.waking.thresholds(search, self.retire_std)
+        """``[K]`` not ``converged``: the std at or above its threshold (NaN is not), and the
+        kept returns not flat at the returns' scale.
+
+        The spread rule retires a policy whose returns have little left to show at the scale
+        of the task's returns: on a broad optimum they agree to a small fraction of the
+        range long before the exploration is small against Σ_start (its trials then go to
+        finding other optima, and a wake refines it later); on a narrow one the std comes
+        first. Only a policy with a full importance set (M kept samples) that explores below
+        ``SPREAD_GATE`` of Σ_start's std is judged so."""
+        relative = search.relative_std()
+        exploring = relative >= self.waking.thresholds(search, self.retire_std)
+        if self.retire_spread <= 0 or self.retire_std <= 0:
+            return exploring
+        k = search.num_policies
+        judged = (search.archive.counts(k) >= search.M) & (relative < SPREAD_GATE)
+        limit = self.returns.fraction(self.waking.thresholds(search, self.retire_spread))
+        return exploring & ~(judged & (_spread(search) < limit))
 
     def refining(self, search: PolicySearch) -> Tensor:
         """``[K]`` the policies woken to refine: clusterings leave their samples out, as
@@ -327,9 +397,11 @@ class Retirement:
         self.waking.wake(search)
 
     def state_dict(self) -> dict:
-        return self.waking.state_dict()
+        kept = self.returns.state_dict() if self.retire_std > 0 else {}
+        return {**kept, **self.waking.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
+        self.returns.load_state_dict(state)
         self.waking.load_state_dict(state)
 
     # ------------------------------------------------------------------ restarts

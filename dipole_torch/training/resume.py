@@ -78,6 +78,8 @@ ADDED_KEYS = {
     "algo.optimizer.scout_sweeps": None,
     # Runs from before the policies accepted unjudged could be held to a share.
     "algo.optimizer.unjudged_share": None,
+    # Runs from before a policy could retire on the spread of its kept returns.
+    "algo.optimizer.retire_spread": 0.0,
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
