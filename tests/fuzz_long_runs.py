@@ -82,6 +82,7 @@ def options(rng: random.Random) -> tuple[str, dict]:
             max_policies=rng.choice([None, 1, 2, 8]),
             max_sampled=rng.choice([None, 1, 4]),
             retire_std=rng.choice([0.0, 1e-3, 1e-1]),
+            retire_spread=rng.choice([0.0, 1e-4, 1e-2, 1.0]),
             refine=rng.choice([0.0, 0.1, 0.9]),
             refine_share=rng.choice([0.01, 0.2, 0.99]),
             merge_radius=rng.choice([0.0, 1.0, 10.0]),
