@@ -147,10 +147,9 @@ class Waking(NoWaking):
     A policy retires once its exploration std is below ``retire_std · refine**n`` of
     Σ_start's, or its M kept returns spread less than ``retire_spread · refine**n`` of the
     range of every return told, n (field ``refinements``) the times it was woken. When no
-    policy is active
-    (every one retired, no candidate accepted), retired policies are woken, n + 1 each, and
-    sampled again with the exploration they retired with (the success rule goes on
-    shrinking it):
+    policy is active (every one retired, no candidate accepted), retired policies are woken,
+    n + 1 each, and sampled again with the exploration they retired with (the success rule
+    goes on shrinking it):
 
     * **A gain to show**: the policies whose M kept returns spread at least
       ``VISIBLE_GAIN`` of the range of every return told, those with the fewest wakes
