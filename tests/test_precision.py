@@ -99,7 +99,8 @@ def retired(stds, returns, refinements, ids_handed=None):
                         torch.arange(k).repeat_interleave(2))  # fmt: skip
     opt.trials = 200
     waking = opt.retirement.waking
-    waking.converged_at, waking.low, waking.high = 100, -1.0, 1.0
+    waking.converged_at = 100
+    opt.retirement.returns.low, opt.retirement.returns.high = -1.0, 1.0
     waking.known_ids = opt.policy_set.next_id
     return opt
 
