@@ -23,7 +23,13 @@ one per sampled policy plus scouts and probes) and the time per trial; and, with
 property reads such as ``.shape``, which cost far less, so the count bounds the dispatches
 from above; counted in one more run per D; the label loop's numpy calls are not counted):
 at a few microseconds of dispatch each, they set the floor of an iteration at these sizes.
-With ``--count-ops`` a third table splits DIPOLE's calls by the part of the iteration that
+A third table splits DIPOLE's iterations after the first by kind: those that sample
+policies (with their scouts and probes) and restarts (no policy active at the ask: every one
+has retired, so the ask is n0 scouts and the tell clusters them), each one's milliseconds
+against PoWER's iteration, the trials of a policy iteration and the share of restarts. The
+restarts' share follows how soon the policies retire on this reward, so the first ratio is
+the one to compare across changes to retirement.
+With ``--count-ops`` a fourth table splits DIPOLE's calls by the part of the iteration that
 makes them (``PARTS``: each call counted once, in the innermost part it is made in; "the
 rest" is ``ask`` and ``tell`` around them: the checks of the told rows, the archive).
 """
@@ -94,7 +100,12 @@ def run(name: str, d: int, trials: int, seed: int) -> dict[str, float]:
 
         opt._fit = timed_fit
     total, first, tells = 0.0, 0.0, 0
+    # After the first tell: iterations that sample policies, and restarts (no policy active at
+    # the ask: n0 scouts and a clustering of them).
+    kinds = {"policies": [0.0, 0, 0], "restarts": [0.0, 0, 0]}  # seconds, iterations, trials
     while opt.trials < trials:
+        restart = isinstance(opt, Dipole) and tells > 0 and not opt.policy_set.any_active()
+        before = opt.trials
         start = time.perf_counter()
         theta = opt.ask()
         asked = time.perf_counter() - start
@@ -104,13 +115,25 @@ def run(name: str, d: int, trials: int, seed: int) -> dict[str, float]:
         elapsed = asked + time.perf_counter() - start
         if tells == 0:
             first = elapsed
+        else:
+            kind = kinds["restarts" if restart else "policies"]
+            kind[0] += elapsed
+            kind[1] += 1
+            kind[2] += opt.trials - before
         total += elapsed
         tells += 1
+    later = max(tells - 1, 1)
+    policies, restarts = kinds["policies"], kinds["restarts"]
     return {
         "per_iter": total / tells,
+        "iterations": tells,
         "first": first,
         "clustering": fitting / tells,
         "trials": opt.trials / tells,
+        "policy_iter": policies[0] / max(policies[1], 1),
+        "policy_trials": policies[2] / max(policies[1], 1),
+        "restart_iter": restarts[0] / max(restarts[1], 1),
+        "restart_share": restarts[1] / later,
     }
 
 
@@ -135,7 +158,7 @@ def torch_calls(name: str, d: int, trials: int, seed: int) -> float:
     return counter.calls / tells
 
 
-# The parts of a DIPOLE iteration whose torch calls the third table counts: (label, the
+# The parts of a DIPOLE iteration whose torch calls the fourth table counts: (label, the
 # object's attribute on the optimizer, or "" for the optimizer itself; the method).
 PARTS = (
     ("first clustering", "", "_after_initial_batch"),
@@ -243,6 +266,23 @@ def main() -> None:
             f"{d:>4} {clustering:>14.2f} {rest:>8.2f} {clustering / base:>12.2f} "
             f"{rest / base:>11.2f} {med['power']['trials']:>16.2f} "
             f"{med['dipole']['trials']:>17.2f} {per_trial:>16.2f} {counted}",
+            flush=True,
+        )
+    print()
+    print("DIPOLE's iterations after the first by kind (ms; ratios to PoWER's whole iteration):")
+    header = (
+        f"{'D':>4} {'policy it. ms':>14} {'policy it./PoWER':>17} {'trials/policy it.':>18} "
+        f"{'restart ms':>11} {'restart/PoWER':>14} {'restarts share':>15}"
+    )
+    print(header)
+    print("-" * len(header))
+    for d, med, _ in breakdown:
+        base = 1e3 * med["power"]["per_iter"]
+        dipole = med["dipole"]
+        policy, restart = 1e3 * dipole["policy_iter"], 1e3 * dipole["restart_iter"]
+        print(
+            f"{d:>4} {policy:>14.2f} {policy / base:>17.2f} {dipole['policy_trials']:>18.2f} "
+            f"{restart:>11.2f} {restart / base:>14.2f} {dipole['restart_share']:>15.3f}",
             flush=True,
         )
     if args.count_ops:
