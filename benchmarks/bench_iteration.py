@@ -204,6 +204,14 @@ def calls_by_part(d: int, trials: int, seed: int) -> dict[str, float]:
     return {label: calls / tells for label, calls in totals.items()}
 
 
+def print_header(title: str, header: str) -> None:
+    """A blank line, a table's title, its column header and a rule under it."""
+    print()
+    print(title)
+    print(header)
+    print("-" * len(header))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=500)
@@ -243,15 +251,12 @@ def main() -> None:
             calls = {name: torch_calls(name, d, trials, 0) for name in ("power", "dipole")}
             calls["parts"] = calls_by_part(d, trials, 0)
         breakdown.append((d, med, calls))
-    print()
-    print("where DIPOLE's time goes (ms per iteration; ratios to PoWER's whole iteration):")
-    header = (
+    print_header(
+        "where DIPOLE's time goes (ms per iteration; ratios to PoWER's whole iteration):",
         f"{'D':>4} {'clustering ms':>14} {'rest ms':>8} {'clust/PoWER':>12} {'rest/PoWER':>11} "
         f"{'PoWER trials/it':>16} {'DIPOLE trials/it':>17} {'per-trial ratio':>16} "
-        f"{'PoWER calls/it':>15} {'DIPOLE calls/it':>16}"
+        f"{'PoWER calls/it':>15} {'DIPOLE calls/it':>16}",
     )
-    print(header)
-    print("-" * len(header))
     for d, med, calls in breakdown:
         base = 1e3 * med["power"]["per_iter"]
         clustering = 1e3 * med["dipole"]["clustering"]
@@ -268,14 +273,11 @@ def main() -> None:
             f"{med['dipole']['trials']:>17.2f} {per_trial:>16.2f} {counted}",
             flush=True,
         )
-    print()
-    print("DIPOLE's iterations after the first by kind (ms; ratios to PoWER's whole iteration):")
-    header = (
+    print_header(
+        "DIPOLE's iterations after the first by kind (ms; ratios to PoWER's whole iteration):",
         f"{'D':>4} {'policy it. ms':>14} {'policy it./PoWER':>17} {'trials/policy it.':>18} "
-        f"{'restart ms':>11} {'restart/PoWER':>14} {'restarts share':>15}"
+        f"{'restart ms':>11} {'restart/PoWER':>14} {'restarts share':>15}",
     )
-    print(header)
-    print("-" * len(header))
     for d, med, _ in breakdown:
         base = 1e3 * med["power"]["per_iter"]
         dipole = med["dipole"]
@@ -288,13 +290,11 @@ def main() -> None:
     if args.count_ops:
         labels = list(breakdown[0][2]["parts"])
         width = [max(len(label), 6) for label in labels]
-        print()
-        print("DIPOLE's torch calls an iteration, by part (one run a D, seed 0):")
-        header = f"{'D':>4} " + " ".join(
-            f"{label:>{w}}" for label, w in zip(labels, width, strict=True)
+        print_header(
+            "DIPOLE's torch calls an iteration, by part (one run a D, seed 0):",
+            f"{'D':>4} "
+            + " ".join(f"{label:>{w}}" for label, w in zip(labels, width, strict=True)),
         )
-        print(header)
-        print("-" * len(header))
         for d, _, calls in breakdown:
             row = [
                 f"{calls['parts'][label]:>{w}.1f}" for label, w in zip(labels, width, strict=True)
