@@ -131,9 +131,6 @@ class NoWaking:
     def wake(self, search: PolicySearch) -> None:
         pass
 
-    def forget(self) -> None:
-        """Nothing measured in the old world."""
-
     def state_dict(self) -> dict:
         return {}
 
@@ -350,7 +347,6 @@ class Retirement:
         """The world changed: nothing judged on the old world's returns is kept."""
         self._in_valley = None
         self.returns.forget()
-        self.waking.forget()
 
     def converged(self, search: PolicySearch) -> Tensor:
         """``[K]`` whether each policy's exploration std is below its threshold times
