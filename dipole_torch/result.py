@@ -22,7 +22,8 @@ class SearchResult:
         means: ``[K, D]`` the policies' means.
         covariances: ``[K, D, D]`` their exploration covariances.
         best_rewards: ``[K]`` each policy's best kept return (−inf: none kept).
-        active: ``[K]`` whether each policy is still sampled.
+        active: ``[K]`` whether each policy is still sampled (not retired; beyond
+            ``max_sampled`` it waits for its turn).
         converged: ``[K]`` whether each policy's exploration has converged.
     """
 
