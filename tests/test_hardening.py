@@ -463,6 +463,34 @@ def test_a_gibbs_update_that_rounds_h_off_positive_definite_fails_its_sweep_not_
     assert_resumes_identically(opt, make(99), offset_sphere, 5)
 
 
+def test_the_papers_variant_without_regularisation_runs_on_once_its_samples_coincide():
+    """The paper's variant explores with its components' posterior covariances. Without
+    regularisation, once a policy's M kept samples are one point (its exploration collapsed
+    on a cone's slope), its component's scatter is zero and H's update draws a scale Ψ0
+    singular to rounding: the estimate's covariance had a correlation of 1 − 1e-16 (or a
+    negative eigenvalue), its mean lay off the data, and the next ask failed to factorise it
+    (found by ``tests/fuzz_long_runs.py``, seed 12287). Such an estimate is refused and the
+    clustering skipped: every policy keeps an exploration that factorises and a mean near
+    its samples."""
+    centre = torch.tensor([-1.8, -2.91], dtype=F64)
+
+    def cone(theta: Tensor) -> Tensor:
+        return 1.0 - (theta - centre).norm(dim=-1).sqrt()
+
+    opt = Dipole.paper(torch.full((2,), 0.4757, dtype=F64), 1e-3 * torch.eye(2, dtype=F64),
+                       M=10, alpha=0.01, m=1, regularization=0.0, settle=None, reward_range=None,
+                       generator=torch.Generator().manual_seed(12287))  # fmt: skip
+
+    def sound():
+        _, info = torch.linalg.cholesky_ex(opt.policy_covariances)
+        assert not info.any(), "a policy's exploration does not factorise"
+        gone = (opt.policy_means[:, None] - opt.archive.thetas).norm(dim=-1).amin(-1).max()
+        assert gone < 0.1, "a policy's mean left its samples"
+
+    run_to(opt, cone, 2200, after_tell=sound)
+    assert opt.clusterings_skipped > 0, "the run no longer reaches a refused estimate"
+
+
 def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
     """``importance="global"`` keeps the best K·M samples of all; with M = 1 and many scouts
     they can all be scouts', so that no policy owns a sample. The policies then take no

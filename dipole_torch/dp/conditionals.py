@@ -353,6 +353,12 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
 # near the data: legitimate values stay within a few widths.
 ESTIMATE_REACH = 1e6
 
+# How close to singular a component's covariance may be in its own per-axis units: the
+# smallest squared Cholesky pivot of its correlation matrix at least 1 / ESTIMATE_CONDITION.
+# Nearer, float64 rounds it to singular or indefinite, and the exploration the paper's
+# variant takes from it no longer factorises at the next ask.
+ESTIMATE_CONDITION = 1e12
+
 
 def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtureState:
     """``state`` if its parameters and H are sound for ``y``; else ``FloatingPointError``.
@@ -361,8 +367,14 @@ def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtur
     1e148 beside parameters of order one) make the covariances too ill-conditioned for
     float64: their factorisation then yields NaN, or values that are finite but absurd
     (H's mean covariance 1e247 and a component mean 1e124 for parameters in [-1, 1]).
-    Both are refused here, so that a caller can skip the clustering instead of adopting
-    them.
+    Converged samples without regularisation (``regularization=0``: a policy whose kept
+    samples are one point) make a component's covariance singular to rounding, and H's
+    update then draws a scale Ψ0 just as singular: the estimate's covariance has a
+    correlation beyond 1 − 1e-16 between two coordinates (or a negative eigenvalue) and its
+    mean lies far off the data along the lost direction. A covariance whose correlation
+    matrix has a squared Cholesky pivot below ``1 / ESTIMATE_CONDITION`` (or none) is
+    refused too. All are refused here, so that a caller can skip the clustering instead of
+    adopting them.
 
     Args:
         y: ``[N, D]`` the data the state was fitted to.
@@ -378,11 +390,19 @@ def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtur
     stds = torch.cat(
         (state.covariances.diagonal(dim1=-2, dim2=-1), prior.mean_covariance.diagonal()[None])
     ).sqrt()
+    # Each covariance as a correlation matrix (its Cholesky factor is L's rows over the
+    # stds): its squared pivots are L_ii² / Σ_ii, the fraction of coordinate i's variance
+    # that the coordinates before it do not explain.
+    tril, info = torch.linalg.cholesky_ex(state.covariances)
+    variances = state.covariances.diagonal(dim1=-2, dim2=-1)
+    pivots = tril.diagonal(dim1=-2, dim2=-1).square() / variances
+    factorises = (info == 0) & (pivots.amin(-1) >= 1.0 / ESTIMATE_CONDITION)
     # NaN fails every comparison: it counts as not inside. One host sync for all.
     inside = (locations >= low - reach) & (locations <= high + reach) & (stds <= reach)
-    if not bool(inside.all()):
+    if not bool(inside.all() & factorises.all()):
         raise FloatingPointError(
-            "the DP mixture's estimate is not sound (non-finite, or far outside the data): "
-            "the data's coordinates differ in scale beyond what float64 factorises"
+            "the DP mixture's estimate is not sound (non-finite, far outside the data, or a "
+            "covariance singular to float64): the data's coordinates differ in scale, or the "
+            "samples are degenerate, beyond what float64 factorises"
         )
     return state
