@@ -353,12 +353,6 @@ def posterior_point_estimate(y: Tensor, state: DPMixtureState) -> DPMixtureState
 # near the data: legitimate values stay within a few widths.
 ESTIMATE_REACH = 1e6
 
-# How close to singular a component's covariance may be in its own per-axis units: the
-# smallest squared Cholesky pivot of its correlation matrix at least 1 / ESTIMATE_CONDITION.
-# Nearer, float64 rounds it to singular or indefinite, and the exploration the paper's
-# variant takes from it no longer factorises at the next ask.
-ESTIMATE_CONDITION = 1e12
-
 
 def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtureState:
     """``state`` if its parameters and H are sound for ``y``; else ``FloatingPointError``.
@@ -371,10 +365,10 @@ def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtur
     samples are one point) make a component's covariance singular to rounding, and H's
     update then draws a scale Ψ0 just as singular: the estimate's covariance has a
     correlation beyond 1 − 1e-16 between two coordinates (or a negative eigenvalue) and its
-    mean lies far off the data along the lost direction. A covariance whose correlation
-    matrix has a squared Cholesky pivot below ``1 / ESTIMATE_CONDITION`` (or none) is
-    refused too. All are refused here, so that a caller can skip the clustering instead of
-    adopting them.
+    mean lies far off the data along the lost direction: the exploration the paper's
+    variant takes from it no longer factorises at the next ask. A covariance that does not
+    factorise, or is singular by rounding (``singular_by_rounding``), is refused too. All
+    are refused here, so that a caller can skip the clustering instead of adopting them.
 
     Args:
         y: ``[N, D]`` the data the state was fitted to.
@@ -390,13 +384,8 @@ def check_estimate(y: Tensor, state: DPMixtureState, spread: Tensor) -> DPMixtur
     stds = torch.cat(
         (state.covariances.diagonal(dim1=-2, dim2=-1), prior.mean_covariance.diagonal()[None])
     ).sqrt()
-    # Each covariance as a correlation matrix (its Cholesky factor is L's rows over the
-    # stds): its squared pivots are L_ii² / Σ_ii, the fraction of coordinate i's variance
-    # that the coordinates before it do not explain.
     tril, info = torch.linalg.cholesky_ex(state.covariances)
-    variances = state.covariances.diagonal(dim1=-2, dim2=-1)
-    pivots = tril.diagonal(dim1=-2, dim2=-1).square() / variances
-    factorises = (info == 0) & (pivots.amin(-1) >= 1.0 / ESTIMATE_CONDITION)
+    factorises = (info == 0) & ~singular_by_rounding(tril, state.covariances)
     # NaN fails every comparison: it counts as not inside. One host sync for all.
     inside = (locations >= low - reach) & (locations <= high + reach) & (stds <= reach)
     if not bool(inside.all() & factorises.all()):
