@@ -41,7 +41,13 @@ def as_theta0(theta0) -> Tensor:
     the optimizer's), a list or a numpy array of numbers as float64 on the CPU (a numpy
     float32 array stays float32). Integer and bool tensors are refused, not converted (a
     silent cast would hide a mistake: an integer θ0 truncated every ask)."""
-    if isinstance(theta0, list | tuple) and all(_is_number(v) for v in theta0):
+    if isinstance(theta0, list | tuple):
+        if not all(_is_number(v) for v in theta0):
+            odd = next(v for v in theta0 if not _is_number(v))
+            raise TypeError(
+                f"theta0 as a list must be [D] real numbers, got an element {odd!r} "
+                f"({type(odd).__name__})"
+            )
         theta0 = torch.tensor([float(v) for v in theta0], dtype=DTYPE)
     elif isinstance(theta0, np.ndarray) and theta0.dtype.kind in "iuf":
         floating = theta0.dtype if theta0.dtype.kind == "f" else np.float64

@@ -257,7 +257,9 @@ def test_huge_offsets_with_tiny_exploration_learn_without_raising(name):
         (torch.zeros(2, dtype=torch.long), torch.eye(2), "theta0 must be a floating-point"),
         (torch.zeros(2, dtype=torch.int32), torch.eye(2), "theta0 must be a floating-point"),
         (torch.zeros(2, dtype=torch.bool), torch.eye(2), "theta0 must be a floating-point"),
-        (["0.0", "0.0"], torch.eye(2), r"theta0 must be a floating-point torch.Tensor.*got list"),
+        (["0.0", "0.0"], torch.eye(2), r"theta0 as a list must be \[D\] real numbers.*'0.0'"),
+        # A nested list was called "not a floating-point torch.Tensor, got list".
+        ([[0.0, 0.0]], torch.eye(2), r"theta0 as a list must be \[D\] real numbers.*\[0.0, 0.0\]"),
         (torch.zeros(2), torch.eye(2, dtype=torch.long), "sigma_start must be a floating-point"),
         (torch.zeros(0), torch.eye(0), "theta0 must have at least one parameter"),
         (torch.zeros(2), torch.eye(2) * math.inf, "sigma_start contains non-finite"),
