@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -355,6 +356,11 @@ class Dipole(PolicySearch):
         )
 
     # ------------------------------------------------------------------ checkpoints
+    def _settings(self) -> dict[str, Any]:
+        """The base's settings (M, n0 and the reward scale as they take effect), and every
+        other option as given."""
+        return {**dataclasses.asdict(self.options), **super()._settings()}
+
     def _state(self, copy: bool) -> dict:
         # (H and the DP state are kept as they are, copied or not: neither is ever changed,
         # a clustering makes new ones.)

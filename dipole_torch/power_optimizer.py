@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
@@ -83,6 +84,13 @@ class Power(PolicySearch):
         self.importance = GlobalImportance()
         self.exploration_decay = float(exploration_decay)
         self.min_exploration = float(min_exploration)
+
+    def _settings(self) -> dict[str, Any]:
+        return {
+            **super()._settings(),
+            "exploration_decay": self.exploration_decay,
+            "min_exploration": self.min_exploration,
+        }
 
     def _after_initial_batch(self) -> None:
         keep, _, _ = importance_sets(self.archive.owner, self.archive.rewards, 1, self.M)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -504,8 +504,13 @@ class PolicySearch:
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
         """Everything needed to continue the run exactly, generator state included (copies:
-        the run goes on without changing them)."""
-        return self._state(copy=True)
+        the run goes on without changing them), and the settings the optimizer was built
+        with (``load_state_dict`` compares them)."""
+        settings = {
+            key: value.clone() if isinstance(value, Tensor) else value
+            for key, value in self._settings().items()
+        }
+        return {**self._state(copy=True), "settings": settings}
 
     def _snapshot(self) -> dict:
         """What ``_load_state_dict`` needs to undo a call that raised: ``state_dict``
@@ -536,19 +541,49 @@ class PolicySearch:
             "kind": type(self).__name__,
         }
 
-    def load_state_dict(self, state: dict) -> None:
+    def _settings(self) -> dict[str, Any]:
+        """What the optimizer was built with and its state does not hold, as plain values
+        and tensors (``load_state_dict`` compares them): θ0 ``[D]``, Σ_start ``[D, D]``, the
+        box (``[2, D]`` or None), M, n0 and the reward scale; a subclass adds its options."""
+        scale = self.reward_scale
+        fixed = None if scale.low is None else (scale.low, scale.high)
+        return {
+            "theta0": self.theta0,
+            "sigma_start": self.sigma_start,
+            "bounds": None if self.box is None else torch.stack(self.box),
+            "M": self.M,
+            "n0": self.n0,
+            "reward_range": "positive" if scale.positive else fixed,
+            "reward_floor": scale.floor,
+        }
+
+    def load_state_dict(self, state: dict, strict: bool = True) -> None:
         """Continue from ``state`` (of ``state_dict``); raises ``ValueError`` naming what
         does not fit this optimizer (another kind, another dimension, a missing key), and
-        then the optimizer is as it was before the call."""
+        then the optimizer is as it was before the call.
+
+        The state holds the run, not the settings the optimizer was built with (θ0,
+        Σ_start, the box, the options): those are the constructor's, as a module's
+        hyperparameters are. With ``strict`` (the default) a state saved by an optimizer
+        built with other settings is refused, naming them; ``strict=False`` continues the
+        run under this optimizer's settings (a deliberate change of options mid-run)."""
         if not isinstance(state, dict):
             raise ValueError(f"state_dict must be a dict, got {type(state).__name__}")
         if state.get("kind") != type(self).__name__:
-            raise ValueError(
-                f"state_dict is from a {state.get('kind')}, not a {type(self).__name__}"
-            )
+            kind = state.get("kind")
+            origin = "not an optimizer's state_dict" if kind is None else f"from a {kind}"
+            raise ValueError(f"state_dict is {origin}, not a {type(self).__name__}'s")
         snapshot = self._snapshot()
         try:
-            self._load_state_dict(state)
+            self._load_state_dict(state)  # (what does not fit is named first)
+            if strict and "settings" in state:  # (states saved before settings were kept: none)
+                differences = setting_differences(state["settings"], self._settings())
+                if differences:
+                    raise ValueError(
+                        f"state_dict was saved by a {type(self).__name__} built with other "
+                        f"settings: {'; '.join(differences)}. Build this one as that one was, or "
+                        f"load with strict=False to continue under this one's settings"
+                    )
         except BaseException:
             self._load_state_dict(snapshot)  # a refused state leaves no part of it behind
             raise
@@ -579,3 +614,44 @@ class PolicySearch:
             raise ValueError(
                 f"state_dict has no {missing} (not a {type(self).__name__}'s)"
             ) from None
+
+
+# Settings saved as tensors may differ in their last bits between devices and engines (a
+# task's θ0 computed by forward kinematics on another device): they match to this relative
+# tolerance. Any other setting must be equal.
+SETTINGS_RTOL = 1e-6
+
+
+def setting_differences(saved: dict, own: dict) -> list[str]:
+    """``"name: saved → own"`` for each setting in ``saved`` or ``own`` whose values differ
+    (tensors: shape, or values beyond ``SETTINGS_RTOL`` of their largest magnitude)."""
+
+    def same(a, b) -> bool:
+        if isinstance(a, Tensor) or isinstance(b, Tensor):
+            if not (isinstance(a, Tensor) and isinstance(b, Tensor)) or a.shape != b.shape:
+                return False
+            a, b = a.detach().cpu().to(DTYPE), b.detach().cpu().to(DTYPE)
+            finite = a.isfinite() & b.isfinite()
+            if not torch.equal(a[~finite], b[~finite]) or not torch.equal(finite, b.isfinite()):
+                return False
+            scale = float(torch.cat((a[finite], b[finite])).abs().amax()) if finite.any() else 0.0
+            return bool(((a[finite] - b[finite]).abs() <= SETTINGS_RTOL * scale).all())
+        return a == b
+
+    def shown(value) -> str:
+        if isinstance(value, Tensor):
+            return (
+                "a tensor of shape " + str(list(value.shape))
+                if value.numel() > 4
+                else (str(value.tolist()))
+            )
+        return repr(value)
+
+    missing = object()
+    differences = []
+    for key in dict.fromkeys([*saved, *own]):
+        a, b = saved.get(key, missing), own.get(key, missing)
+        if a is missing or b is missing or not same(a, b):
+            a, b = ("(none)" if v is missing else shown(v) for v in (a, b))
+            differences.append(f"{key}: {a} saved, {b} here")
+    return differences

@@ -371,6 +371,54 @@ def test_a_refused_state_changes_nothing(kind):
     assert same_state(opt.state_dict(), before)
 
 
+@pytest.mark.parametrize(
+    "kind, other, named",
+    [
+        ("dipole", lambda: Dipole(torch.zeros(2, dtype=F64), 1.0, max_sampled=None),
+         r"max_sampled: 4 saved, None here"),
+        ("dipole", lambda: Dipole.paper(torch.zeros(2, dtype=F64), 1.0),
+         r"importance: 'policy' saved, 'global' here"),
+        ("dipole", lambda: Dipole(torch.zeros(2, dtype=F64), 2.0),
+         r"sigma_start: \[\[1.0, 0.0\], \[0.0, 1.0\]\] saved, \[\[4.0, 0.0\], \[0.0, 4.0\]\] here"),
+        ("dipole", lambda: Dipole(torch.tensor([0.0, 1.0], dtype=F64), 1.0),
+         r"theta0: \[0.0, 0.0\] saved, \[0.0, 1.0\] here"),
+        ("dipole", lambda: Dipole(torch.zeros(2, dtype=F64), 1.0, bounds=(-3, 3)),
+         r"bounds: None saved"),
+        ("power", lambda: Power(torch.zeros(2, dtype=F64), 1.0, exploration_decay=0.9),
+         r"exploration_decay: 1.0 saved, 0.9 here"),
+    ],
+)  # fmt: skip
+def test_a_state_saved_with_other_settings_is_refused_naming_them(kind, other, named):
+    """A state holds the run, not the settings its optimizer was built with: loaded into one
+    built otherwise, the run went on silently under the other options, Σ_start or θ0."""
+    saved = build(kind)
+    for _ in range(3):
+        theta = saved.ask()
+        saved.tell(theta, quadratic(theta))
+    state = saved.state_dict()
+    opt = other()
+    before = opt.state_dict()
+    with pytest.raises(ValueError, match=named):
+        opt.load_state_dict(state)
+    assert same_state(opt.state_dict(), before)
+    opt.load_state_dict(state, strict=False)  # a deliberate change: the run goes on
+    assert torch.equal(opt.ask(), saved.ask())
+
+
+def test_settings_that_differ_by_rounding_alone_still_load():
+    # A task's θ0 computed on another device or engine may differ in its last bits.
+    theta0 = torch.tensor([0.3, -0.7], dtype=F64)
+    saved = Dipole(theta0, 1.0, generator=torch.Generator().manual_seed(0))
+    theta = saved.ask()
+    saved.tell(theta, quadratic(theta))
+    state = saved.state_dict()
+    opt = Dipole(theta0 + 1e-9, 1.0 + 1e-12)
+    opt.load_state_dict(state)
+    assert torch.equal(opt.ask(), saved.ask())
+    del state["settings"]  # a state saved before settings were kept loads as before
+    Dipole(torch.ones(2, dtype=F64), 1.0).load_state_dict(state)
+
+
 def test_a_checkpoint_round_trip_continues_identically():
     # (The refusals above must not cost the plain case: load, then the same draws.)
     opt = build("dipole")
