@@ -130,7 +130,7 @@ class Dipole(PolicySearch):
         )
         self.vetting = make_vetting(
             options.hill_valley, d, self.device, options.pair_points, options.max_policies,
-            self.cluster_every, options.accept_unjudged,
+            self.cluster_every, options.accept_unjudged, options.marks_unjudged,
         )  # fmt: skip
         self.retirement = Retirement(
             options.retire_std, options.merge_radius, self.exploration.keeps_covariance,
@@ -187,8 +187,20 @@ class Dipole(PolicySearch):
     def _sampled_policies(self) -> Tensor:
         return self.scouting.sampled_policies(self)
 
+    def _cover_from_trial(self) -> None:
+        """With ``coverage_from``: from that trial on, the candidates the probe cannot judge
+        are accepted and every active policy is sampled; before it, the options as set. (Set
+        from the trial count at each tell, ask and load, so a resumed run switches as it ran.)"""
+        start = self.options.coverage_from
+        if start is None:
+            return
+        covering = self.trials >= start
+        self.vetting.accept_unjudged = covering or self.options.accept_unjudged
+        self.scouting.max_sampled = None if covering else self.options.max_sampled
+
     def _propose(self) -> tuple[Tensor, Tensor]:
         """Policy samples, then scouts, then hill-valley probes."""
+        self._cover_from_trial()
         if self.policy_set.any_active():
             theta, owner = super()._propose()
         else:
@@ -215,6 +227,7 @@ class Dipole(PolicySearch):
 
     def _iterate(self) -> None:
         """One iteration of Algorithm 2 after the samples are told."""
+        self._cover_from_trial()
         self.importance.power_step(self)  # eq. 7 on each policy's importance set
         self.retirement.restart_straddlers(self)  # while policies are numbered as told
         self.vetting.judge(self)  # the probes told in this batch
@@ -396,6 +409,7 @@ class Dipole(PolicySearch):
             self.sampler = self._sampler(prior)
         self.dp_state = None if dp is None else DPMixtureState.from_state_dict(dp)
         self.clusterings_skipped = int(state.get("clusterings_skipped", 0))
+        self._cover_from_trial()
 
 
 def _to_device(state, device: torch.device):

@@ -41,6 +41,7 @@ class DipoleOptions:
                            cannot judge is forgotten
     ``unjudged_share``     ``None`` (with                  ``None``
                            ``accept_unjudged``: no cap)
+    ``coverage_from``      ``None``: never                 ``None``
     ``max_policies``       8 active policies at most       no limit
     ``max_sampled``        4 policies sampled in an        no limit
                            iteration (the others wait)
@@ -106,6 +107,11 @@ class DipoleOptions:
             in (0, 1] (None: no cap); the others are sampled meanwhile. The policies that
             passed the test keep the trials they converge with (see
             mechanisms.scouting).
+        coverage_from: from this trial on, cover alternatives: ``accept_unjudged`` and
+            every active policy sampled (``max_sampled=None``), whatever those two are set
+            to (None: never). Converge first, then cover: the policies held by then have
+            had the trials to converge, and the new ones accepted after it take the rest
+            (with ``unjudged_share``, at most that share of the policy samples).
         max_policies: active policies at most (None: no limit).
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
         retire_std: retire a policy once its exploration std is below this times Σ_start's
@@ -150,6 +156,7 @@ class DipoleOptions:
     pair_points: int = 1
     accept_unjudged: bool = False
     unjudged_share: float | None = None
+    coverage_from: int | None = None
     max_policies: int | None = 8
     max_sampled: int | None = 4
     retire_std: float = 1e-3
@@ -170,10 +177,15 @@ class DipoleOptions:
                 "accept_unjudged=True needs hill_valley=True: without the hill-valley test "
                 "no candidate is judged"
             )
-        if self.unjudged_share is not None and not self.accept_unjudged:
+        if self.coverage_from is not None and not self.hill_valley:
             raise ValueError(
-                f"unjudged_share={self.unjudged_share} needs accept_unjudged=True: it caps "
-                "the samples of the policies accepted unjudged"
+                f"coverage_from={self.coverage_from} needs hill_valley=True: it accepts the "
+                "candidates that the hill-valley test cannot judge"
+            )
+        if self.unjudged_share is not None and not self.marks_unjudged:
+            raise ValueError(
+                f"unjudged_share={self.unjudged_share} needs accept_unjudged=True or "
+                "coverage_from: it caps the samples of the policies accepted unjudged"
             )
         if self.matching == "replace" and self.retire_std > 0:
             raise ValueError(
@@ -181,6 +193,12 @@ class DipoleOptions:
                 "matching='replace' every clustering makes each component a new, active "
                 "policy, so a retired policy would be sampled again (use retire_std=0)"
             )
+
+    @property
+    def marks_unjudged(self) -> bool:
+        """Whether policies may be accepted unjudged in the run (``accept_unjudged``, or
+        from ``coverage_from`` on): the policy field that marks them is kept."""
+        return self.accept_unjudged or self.coverage_from is not None
 
     @classmethod
     def paper(cls, **changes: Any) -> DipoleOptions:
@@ -300,6 +318,7 @@ _CHECKS = {
     "pair_points": check_count,
     "accept_unjudged": check_flag,
     "unjudged_share": _optional_share,
+    "coverage_from": _optional_count,
     "max_policies": _optional_count,
     "max_sampled": _optional_count,
     "retire_std": _non_negative,

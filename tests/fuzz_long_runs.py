@@ -100,6 +100,10 @@ def options(rng: random.Random) -> tuple[str, dict]:
         changes["accept_unjudged"] = rng.choice([False, True])
         if changes["accept_unjudged"]:
             changes["unjudged_share"] = rng.choice([None, 0.05, 0.5])
+        # (Drawn after the rest: earlier seeds keep their other options.)
+        changes["coverage_from"] = rng.choice([None, None, 30, 300, 2000])
+        if changes["coverage_from"] and not changes["accept_unjudged"]:
+            changes["unjudged_share"] = rng.choice([None, 0.5])
     return variant, changes
 
 

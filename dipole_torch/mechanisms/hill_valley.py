@@ -88,6 +88,8 @@ class HillValley(NoVetting):
         accept_unjudged: a candidate whose probe shows no valley becomes a policy too when
             neither it (its starting covariance) nor the policy it was probed against
             explores within ``PAIR_REACH`` stds of the other's best sample.
+        marks_unjudged: keep the policy field ``unjudged`` (None: with ``accept_unjudged``);
+            also without it when acceptance is switched on later in the run.
     """
 
     vets_new_policies = True
@@ -113,8 +115,11 @@ class HillValley(NoVetting):
         max_policies: int | None,
         cluster_every: int,
         accept_unjudged: bool = False,
+        marks_unjudged: bool | None = None,
     ):
         self.accept_unjudged = bool(accept_unjudged)
+        # (The field is kept from the start when acceptance starts later: ``coverage_from``.)
+        self.marks_unjudged = self.accept_unjudged if marks_unjudged is None else marks_unjudged
         self.pair_points = int(pair_points)
         self.max_policies = max_policies
         self.cluster_every = int(cluster_every)
@@ -140,7 +145,7 @@ class HillValley(NoVetting):
     def register(self, search: PolicySearch) -> None:
         """With ``accept_unjudged``, the policy field ``unjudged``: whether a policy was
         accepted with no valley shown (beyond reach of its partner)."""
-        if self.accept_unjudged:
+        if self.marks_unjudged:
             search.policy_set.register("unjudged", PolicyField(default=False, dtype=torch.bool))
 
     # ------------------------------------------------------------------ ask and tell
@@ -198,7 +203,7 @@ class HillValley(NoVetting):
             self.candidate_rewards, search.policy_best_rewards[nearest]
         )
         self.candidate_partners = nearest
-        if self.accept_unjudged:
+        if self.marks_unjudged:  # (also before acceptance starts: judged after it)
             # Beyond reach both ways: the partner's exploration to the candidate's best
             # sample, the candidate's starting covariance to the partner's.
             gap = (partners[nearest] - self.candidate_samples)[:, None, :]  # [C, 1, D]
@@ -380,8 +385,11 @@ def make_vetting(
     max_policies: int | None,
     cluster_every: int,
     accept_unjudged: bool = False,
+    marks_unjudged: bool | None = None,
 ) -> NoVetting:
     """``HillValley`` with ``hill_valley``, else ``NoVetting``."""
     if not hill_valley:
         return NoVetting()
-    return HillValley(dim, device, pair_points, max_policies, cluster_every, accept_unjudged)
+    return HillValley(
+        dim, device, pair_points, max_policies, cluster_every, accept_unjudged, marks_unjudged
+    )

@@ -80,6 +80,8 @@ ADDED_KEYS = {
     "algo.optimizer.unjudged_share": None,
     # Runs from before a policy could retire on the spread of its kept returns.
     "algo.optimizer.retire_spread": 0.0,
+    # Runs from before the coverage options could start at a trial.
+    "algo.optimizer.coverage_from": None,
 }
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
