@@ -112,9 +112,10 @@ METHODS = ("DIPOLE", "DIPOLE (paper)", "PoWER", "IPOP-CMA-ES", "NMMSO", "random 
 # (``settle=None, scout_sweeps=None``; the default ends one once its partition settles and
 # gives a clustering of scouts alone one sweep), and DIPOLE with the
 # options for covering alternatives (the preset configs/algo/dipole_coverage.yaml, as
-# bench_viapoint_qd.py's "DIPOLE (coverage)"), to measure each option's effect beside the
-# defaults.
-OPT_IN = ("DIPOLE (all sweeps)", "DIPOLE (coverage)")
+# bench_viapoint_qd.py's "DIPOLE (coverage)"), and the defaults until trial 300 with the
+# coverage options from then on (``coverage_from=300, unjudged_share=0.5``), to measure each
+# option's effect beside the defaults.
+OPT_IN = ("DIPOLE (all sweeps)", "DIPOLE (coverage)", "DIPOLE (coverage from 300)")
 DIMS = (2, 5, 10)
 KS = (2, 4, 8)
 SEEDS = 10
@@ -317,6 +318,10 @@ def coverage_options() -> dict:
 
 def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
     return run_dipole(landscape, budgets, seed, **coverage_options())
+
+
+def run_dipole_coverage_from(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
+    return run_dipole(landscape, budgets, seed, coverage_from=300, unjudged_share=0.5)
 
 
 def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
@@ -535,6 +540,7 @@ RUNNERS: dict[str, Callable[[Landscape, Sequence[int], int], Snapshots]] = {
     "DIPOLE (paper)": run_dipole_paper,
     "DIPOLE (all sweeps)": run_dipole_all_sweeps,
     "DIPOLE (coverage)": run_dipole_coverage,
+    "DIPOLE (coverage from 300)": run_dipole_coverage_from,
     "PoWER": run_power,
     "IPOP-CMA-ES": run_ipop_cmaes,
     "NMMSO": run_nmmso,
@@ -817,7 +823,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     # Slowest first (DIPOLE clusters, PoWER tells 2000 times; high D costs more), so the last
     # tasks are short and the processes finish together.
     cost = {"DIPOLE": 0, "DIPOLE (paper)": 0, "DIPOLE (all sweeps)": 0, "DIPOLE (coverage)": 0,
-            "PoWER": 1, "NMMSO": 2, "IPOP-CMA-ES": 3}  # fmt: skip
+            "DIPOLE (coverage from 300)": 0, "PoWER": 1, "NMMSO": 2, "IPOP-CMA-ES": 3}  # fmt: skip
     tasks = sorted(
         (
             (d, k, s, m, budgets)

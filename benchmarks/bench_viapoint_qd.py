@@ -5,6 +5,7 @@ oracle behaviour descriptor.
     python benchmarks/bench_viapoint_qd.py                    # 10 seeds, 300 and 1000 trials
     python benchmarks/bench_viapoint_qd.py --seeds 2 --methods DIPOLE --json /tmp/qd.json
     python benchmarks/bench_viapoint_qd.py --methods "DIPOLE (coverage)" --keep-others
+    python benchmarks/bench_viapoint_qd.py --methods "DIPOLE (coverage from 300)" --json /tmp/q.json
 
 **Task**: ``configs/task/viapoint.yaml`` (the simulated Barrett WAM, D = 9, 2 alternative
 viapoints at each of 3 pass times: 8 routes of return 1), as in
@@ -21,6 +22,9 @@ that route with return ≥ r (r = 0.9, the paper's count, and 0.95). Returned so
 * **DIPOLE (coverage)**: the same with the options a user sets to cover alternatives rather
   than converge on each (``configs/algo/dipole_coverage.yaml``: ``accept_unjudged=True``,
   ``max_sampled=None``, ``unjudged_share=0.5``).
+* **DIPOLE (coverage from 300)** (opt-in): the defaults until trial 300, the coverage
+  options from then on (``algo.optimizer.coverage_from=300``,
+  ``algo.optimizer.unjudged_share=0.5``).
 * **MAP-Elites** and **CMA-MAE** (pyribs 0.12): the elites of an archive with one cell per
   route, **the route given as the behaviour descriptor: an oracle** that DIPOLE does not
   get (it would not exist for a task whose alternatives are unknown). The elites are
@@ -59,9 +63,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # (lockstep, reproduce
 ROOT = Path(__file__).resolve().parents[1]
 # (Appended, not inserted: the peers' seeds derive from their index.)
 METHODS = ("DIPOLE", "MAP-Elites", "CMA-MAE", "DIPOLE (coverage)")
-# The configs (configs/algo/<name>.yaml) of DIPOLE's two rows, as train.py's algo=<name>.
-CONFIGS = {"DIPOLE": "dipole", "DIPOLE (coverage)": "dipole_coverage"}
-SHOWN = ("DIPOLE", "DIPOLE (coverage)", "MAP-Elites", "CMA-MAE")  # the tables' order
+# Run when asked for (--methods): the defaults until trial 300, the coverage options from
+# then on (``coverage_from``; docs: Precision and coverage).
+OPT_IN = ("DIPOLE (coverage from 300)",)
+# DIPOLE's rows: the config (configs/algo/<name>.yaml, as train.py's algo=<name>) and its
+# overrides.
+CONFIGS = {
+    "DIPOLE": ("dipole", ()),
+    "DIPOLE (coverage)": ("dipole_coverage", ()),
+    "DIPOLE (coverage from 300)": (
+        "dipole",
+        ("algo.optimizer.coverage_from=300", "algo.optimizer.unjudged_share=0.5"),
+    ),
+}
+# The tables' order.
+SHOWN = ("DIPOLE", "DIPOLE (coverage)", "DIPOLE (coverage from 300)", "MAP-Elites", "CMA-MAE")
 BUDGETS = (300, 1000)
 LEVELS = (0.9, 0.95)
 SEEDS = 10
@@ -96,11 +112,13 @@ def _covered(routes, rewards) -> dict[str, float]:
     return best
 
 
-def run_dipole(seed: int, budgets: Sequence[int], name: str = "dipole") -> dict[int, dict]:
+def run_dipole(
+    seed: int, budgets: Sequence[int], name: str = "dipole", overrides: tuple[str, ...] = ()
+) -> dict[int, dict]:
     from reproduce_viapoint import make_optimizer
 
     task, n0 = _task()
-    opt = make_optimizer("DIPOLE", task, n0, seed, name=name)
+    opt = make_optimizer("DIPOLE", task, n0, seed, name=name, overrides=overrides)
     snapshots = {}
     top = budgets[-1]
     while True:
@@ -192,7 +210,7 @@ def run_case(method: str, seed: int, budgets: Sequence[int]) -> dict:
     budgets = sorted({int(b) for b in budgets})
     start = time.perf_counter()
     if method in CONFIGS:
-        per_budget = run_dipole(seed, budgets, CONFIGS[method])
+        per_budget = run_dipole(seed, budgets, *CONFIGS[method])
     else:
         per_budget = run_qd(method, seed, budgets)
     for b, v in per_budget.items():
@@ -253,7 +271,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1")
     parser.add_argument("--budgets", type=int, nargs="+", default=list(BUDGETS))
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     parser.add_argument("--workers", type=int, default=2, help="processes")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
     from bench_multioptima import _version, add_keep_others, machine, run_keeping_others

@@ -74,10 +74,13 @@ ALGORITHMS = {"DIPOLE": "dipole", "DIPOLE (paper)": "dipole_paper", "PoWER": "po
 COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"}
 
 
-def make_optimizer(algo: str, task, n0: int, seed: int, name: str | None = None):
+def make_optimizer(
+    algo: str, task, n0: int, seed: int, name: str | None = None, overrides: tuple[str, ...] = ()
+):
     """The optimizer of ``configs/algo/<name>.yaml`` (by default ``ALGORITHMS[algo]``; the
-    defaults α = 1, m = 10, M = 5), as ``train.py``'s ``algo=<name>`` builds it."""
-    config = compose_config(f"algo={name or ALGORITHMS[algo]}").algo
+    defaults α = 1, m = 10, M = 5) with the config ``overrides``
+    (``algo.optimizer.<option>=<value>``), as ``train.py``'s ``algo=<name>`` builds it."""
+    config = compose_config(f"algo={name or ALGORITHMS[algo]}", *overrides).algo
     optimizer = instantiate(
         config.optimizer,
         theta0=task.theta0.double(),
