@@ -623,35 +623,33 @@ SETTINGS_RTOL = 1e-6
 
 
 def setting_differences(saved: dict, own: dict) -> list[str]:
-    """``"name: saved → own"`` for each setting in ``saved`` or ``own`` whose values differ
-    (tensors: shape, or values beyond ``SETTINGS_RTOL`` of their largest magnitude)."""
+    """``"name: <saved> saved, <own> here"`` for each setting of both whose values differ
+    (tensors: in shape, or beyond ``SETTINGS_RTOL`` of their largest magnitude). A setting
+    that one of them lacks is not compared: the state is from a version before that option
+    existed or after it was removed (``train.py``'s resume checks the config's keys)."""
 
     def same(a, b) -> bool:
-        if isinstance(a, Tensor) or isinstance(b, Tensor):
-            if not (isinstance(a, Tensor) and isinstance(b, Tensor)) or a.shape != b.shape:
-                return False
-            a, b = a.detach().cpu().to(DTYPE), b.detach().cpu().to(DTYPE)
-            finite = a.isfinite() & b.isfinite()
-            if not torch.equal(a[~finite], b[~finite]) or not torch.equal(finite, b.isfinite()):
-                return False
-            scale = float(torch.cat((a[finite], b[finite])).abs().amax()) if finite.any() else 0.0
-            return bool(((a[finite] - b[finite]).abs() <= SETTINGS_RTOL * scale).all())
-        return a == b
+        if not (isinstance(a, Tensor) or isinstance(b, Tensor)):
+            return a == b
+        if not (isinstance(a, Tensor) and isinstance(b, Tensor)) or a.shape != b.shape:
+            return False
+        a, b = a.detach().cpu().to(DTYPE), b.detach().cpu().to(DTYPE)
+        finite = a.isfinite()
+        if not torch.equal(finite, b.isfinite()) or not torch.equal(a[~finite], b[~finite]):
+            return False  # (±inf sides of a box must be equal)
+        if not bool(finite.any()):
+            return True
+        scale = float(torch.cat((a[finite], b[finite])).abs().amax())
+        return bool(((a[finite] - b[finite]).abs() <= SETTINGS_RTOL * scale).all())
 
     def shown(value) -> str:
         if isinstance(value, Tensor):
-            return (
-                "a tensor of shape " + str(list(value.shape))
-                if value.numel() > 4
-                else (str(value.tolist()))
-            )
+            small = value.numel() <= 4
+            return str(value.tolist()) if small else f"a tensor of shape {list(value.shape)}"
         return repr(value)
 
-    missing = object()
-    differences = []
-    for key in dict.fromkeys([*saved, *own]):
-        a, b = saved.get(key, missing), own.get(key, missing)
-        if a is missing or b is missing or not same(a, b):
-            a, b = ("(none)" if v is missing else shown(v) for v in (a, b))
-            differences.append(f"{key}: {a} saved, {b} here")
-    return differences
+    return [
+        f"{key}: {shown(saved[key])} saved, {shown(own[key])} here"
+        for key in saved
+        if key in own and not same(saved[key], own[key])
+    ]

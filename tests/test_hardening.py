@@ -415,6 +415,11 @@ def test_settings_that_differ_by_rounding_alone_still_load():
     opt = Dipole(theta0 + 1e-9, 1.0 + 1e-12)
     opt.load_state_dict(state)
     assert torch.equal(opt.ask(), saved.ask())
+    # A state saved before an option existed lacks it: the others are compared.
+    del state["settings"]["coverage_from"]
+    Dipole(theta0, 1.0, coverage_from=None).load_state_dict(state)
+    with pytest.raises(ValueError, match="max_sampled: 4 saved, 2 here"):
+        Dipole(theta0, 1.0, max_sampled=2).load_state_dict(state)
     del state["settings"]  # a state saved before settings were kept loads as before
     Dipole(torch.ones(2, dtype=F64), 1.0).load_state_dict(state)
 

@@ -143,7 +143,7 @@ class HillValley(NoVetting):
         self.pair_probes = vector
 
     def register(self, search: PolicySearch) -> None:
-        """With ``accept_unjudged``, the policy field ``unjudged``: whether a policy was
+        """With ``marks_unjudged``, the policy field ``unjudged``: whether a policy was
         accepted with no valley shown (beyond reach of its partner)."""
         if self.marks_unjudged:
             search.policy_set.register("unjudged", PolicyField(default=False, dtype=torch.bool))
