@@ -208,6 +208,7 @@ RUNNERS: dict[str, Callable[[NichingFunction, Sequence[int], int], peers.Snapsho
     "DIPOLE": peers.run_dipole,
     "DIPOLE (all sweeps)": peers.run_dipole_all_sweeps,
     "DIPOLE (coverage)": peers.run_dipole_coverage,
+    "DIPOLE (coverage from 300)": peers.run_dipole_coverage_from,
     "IPOP-CMA-ES": peers.run_ipop_cmaes,
     "NMMSO": peers.run_nmmso,
     "random search": run_random_search,
