@@ -33,6 +33,7 @@ from dipole_torch.policy_set import PolicySet
 from dipole_torch.result import SearchResult
 from dipole_torch.reward import RewardRange, check_rewards, make_reward_scale
 from dipole_torch.sampling import draw_gaussian
+from dipole_torch.settings import setting_differences
 from dipole_torch.validation import (
     check_count,
     check_finite,
@@ -614,42 +615,3 @@ class PolicySearch:
             raise ValueError(
                 f"state_dict has no {missing} (not a {type(self).__name__}'s)"
             ) from None
-
-
-# Settings saved as tensors may differ in their last bits between devices and engines (a
-# task's θ0 computed by forward kinematics on another device): they match to this relative
-# tolerance. Any other setting must be equal.
-SETTINGS_RTOL = 1e-6
-
-
-def setting_differences(saved: dict, own: dict) -> list[str]:
-    """``"name: <saved> saved, <own> here"`` for each setting of both whose values differ
-    (tensors: in shape, or beyond ``SETTINGS_RTOL`` of their largest magnitude). A setting
-    that one of them lacks is not compared: the state is from a version before that option
-    existed or after it was removed (``train.py``'s resume checks the config's keys)."""
-
-    def same(a, b) -> bool:
-        if not (isinstance(a, Tensor) or isinstance(b, Tensor)):
-            return a == b
-        if not (isinstance(a, Tensor) and isinstance(b, Tensor)) or a.shape != b.shape:
-            return False
-        a, b = a.detach().cpu().to(DTYPE), b.detach().cpu().to(DTYPE)
-        finite = a.isfinite()
-        if not torch.equal(finite, b.isfinite()) or not torch.equal(a[~finite], b[~finite]):
-            return False  # (±inf sides of a box must be equal)
-        if not bool(finite.any()):
-            return True
-        scale = float(torch.cat((a[finite], b[finite])).abs().amax())
-        return bool(((a[finite] - b[finite]).abs() <= SETTINGS_RTOL * scale).all())
-
-    def shown(value) -> str:
-        if isinstance(value, Tensor):
-            small = value.numel() <= 4
-            return str(value.tolist()) if small else f"a tensor of shape {list(value.shape)}"
-        return repr(value)
-
-    return [
-        f"{key}: {shown(saved[key])} saved, {shown(own[key])} here"
-        for key in saved
-        if key in own and not same(saved[key], own[key])
-    ]

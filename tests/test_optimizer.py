@@ -7,7 +7,7 @@ import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
 
 from dipole_torch import Dipole, DPSampler, GaussianMixture, Power
-from dipole_torch.search import setting_differences
+from dipole_torch.settings import setting_differences
 
 F64 = torch.float64
 

@@ -88,8 +88,8 @@ class HillValley(NoVetting):
         accept_unjudged: a candidate whose probe shows no valley becomes a policy too when
             neither it (its starting covariance) nor the policy it was probed against
             explores within ``PAIR_REACH`` stds of the other's best sample.
-        marks_unjudged: keep the policy field ``unjudged`` (None: with ``accept_unjudged``);
-            also without it when acceptance is switched on later in the run.
+        marks_unjudged: keep the policy field ``unjudged`` without ``accept_unjudged`` too,
+            for acceptance switched on later in the run (it is kept with it).
     """
 
     vets_new_policies = True
@@ -115,11 +115,11 @@ class HillValley(NoVetting):
         max_policies: int | None,
         cluster_every: int,
         accept_unjudged: bool = False,
-        marks_unjudged: bool | None = None,
+        marks_unjudged: bool = False,
     ):
         self.accept_unjudged = bool(accept_unjudged)
         # (The field is kept from the start when acceptance starts later: ``coverage_from``.)
-        self.marks_unjudged = self.accept_unjudged if marks_unjudged is None else marks_unjudged
+        self.marks_unjudged = self.accept_unjudged or bool(marks_unjudged)
         self.pair_points = int(pair_points)
         self.max_policies = max_policies
         self.cluster_every = int(cluster_every)
@@ -385,7 +385,7 @@ def make_vetting(
     max_policies: int | None,
     cluster_every: int,
     accept_unjudged: bool = False,
-    marks_unjudged: bool | None = None,
+    marks_unjudged: bool = False,
 ) -> NoVetting:
     """``HillValley`` with ``hill_valley``, else ``NoVetting``."""
     if not hill_valley:
