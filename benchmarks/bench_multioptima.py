@@ -320,8 +320,12 @@ def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int)
     return run_dipole(landscape, budgets, seed, **coverage_options())
 
 
+# The options of the opt-in row "DIPOLE (coverage from 300)" (also bench_viapoint_qd.py's).
+COVERAGE_FROM_300 = {"coverage_from": 300, "unjudged_share": 0.5}
+
+
 def run_dipole_coverage_from(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
-    return run_dipole(landscape, budgets, seed, coverage_from=300, unjudged_share=0.5)
+    return run_dipole(landscape, budgets, seed, **COVERAGE_FROM_300)
 
 
 def run_dipole_paper(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:

@@ -60,6 +60,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # (lockstep, reproduce_viapoint)
 
+from bench_multioptima import COVERAGE_FROM_300  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 # (Appended, not inserted: the peers' seeds derive from their index.)
 METHODS = ("DIPOLE", "MAP-Elites", "CMA-MAE", "DIPOLE (coverage)")
@@ -73,7 +75,7 @@ CONFIGS = {
     "DIPOLE (coverage)": ("dipole_coverage", ()),
     "DIPOLE (coverage from 300)": (
         "dipole",
-        ("algo.optimizer.coverage_from=300", "algo.optimizer.unjudged_share=0.5"),
+        tuple(f"algo.optimizer.{key}={value}" for key, value in COVERAGE_FROM_300.items()),
     ),
 }
 # The tables' order.
