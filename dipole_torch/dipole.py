@@ -188,9 +188,11 @@ class Dipole(PolicySearch):
         return self.scouting.sampled_policies(self)
 
     def _cover_from_trial(self) -> None:
-        """With ``coverage_from``: from that trial on, the candidates the probe cannot judge
-        are accepted and every active policy is sampled; before it, the options as set. (Set
-        from the trial count at each tell, ask and load, so a resumed run switches as it ran.)"""
+        """With ``coverage_from``: for the batches asked from that trial on, the candidates
+        the probe cannot judge are accepted and every active policy is sampled; before it,
+        the options as set. Set from the trial count at each ask (and at load, so a resumed
+        run switches as it ran) and kept through the batch's tell: a run whose batches were
+        all asked before the trial is the run without the option, draw for draw."""
         start = self.options.coverage_from
         if start is None:
             return
@@ -227,7 +229,6 @@ class Dipole(PolicySearch):
 
     def _iterate(self) -> None:
         """One iteration of Algorithm 2 after the samples are told."""
-        self._cover_from_trial()
         self.importance.power_step(self)  # eq. 7 on each policy's importance set
         self.retirement.restart_straddlers(self)  # while policies are numbered as told
         self.vetting.judge(self)  # the probes told in this batch

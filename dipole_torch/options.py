@@ -107,9 +107,10 @@ class DipoleOptions:
             in (0, 1] (None: no cap); the others are sampled meanwhile. The policies that
             passed the test keep the trials they converge with (see
             mechanisms.scouting).
-        coverage_from: from this trial on, cover alternatives: ``accept_unjudged`` and
-            every active policy sampled (``max_sampled=None``), whatever those two are set
-            to (None: never). Converge first, then cover: the policies held by then have
+        coverage_from: for the batches asked from this trial on, cover alternatives:
+            ``accept_unjudged`` and every active policy sampled (``max_sampled=None``),
+            whatever those two are set to (None: never); a run that stops at this trial is
+            the run without it. Converge first, then cover: the policies held by then have
             had the trials to converge, and the new ones accepted after it take the rest
             (with ``unjudged_share``, at most that share of the policy samples).
         max_policies: active policies at most (None: no limit).

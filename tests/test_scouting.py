@@ -225,10 +225,39 @@ def test_before_coverage_from_the_run_is_the_defaults_and_from_it_covers():
     assert torch.equal(plain.ask(), theta)
     assert not later.vetting.accept_unjudged and later.scouting.max_sampled == 4
     later.tell(theta, equal_maxima(theta))
-    run_to(later, start + 1)
+    run_to(later, start)
+    later.ask()
     assert later.vetting.accept_unjudged and later.scouting.max_sampled is None
     # The options as given stay the optimizer's settings: a checkpoint keeps them.
     assert later.options.max_sampled == 4 and not later.options.accept_unjudged
+
+
+def test_a_run_whose_batches_were_all_asked_before_coverage_from_is_the_defaults_run():
+    """The switch is decided at ask: the batch that crosses the trial is told as it was
+    asked, so a run stopped at the trial (train.py's trials=T) ends where the defaults do.
+    (Told with the switch on, a candidate judged in that batch became an extra policy.)"""
+
+    def wavy(theta):  # 2-D, many optima: candidates the probe cannot judge come early
+        return torch.cos(3.0 * theta).sum(-1) - 0.02 * (theta**2).sum(-1)
+
+    for seed in range(8):
+        start = 100 + 13 * seed
+        runs = []
+        for changes in ({}, {"coverage_from": start}):
+            opt = Dipole(
+                torch.zeros(2, dtype=DTYPE),
+                4.0 * torch.eye(2, dtype=DTYPE),
+                bounds=(-5.0, 5.0),
+                generator=torch.Generator().manual_seed(seed),
+                **changes,
+            )
+            while opt.trials < start:
+                theta = opt.ask()
+                opt.tell(theta, wavy(theta))
+            runs.append(opt)
+        plain, later = runs
+        assert plain.policy_means.shape == later.policy_means.shape, seed
+        assert torch.equal(plain.policy_means, later.policy_means), seed
 
 
 @pytest.mark.parametrize("saved_at", [150, 250])
