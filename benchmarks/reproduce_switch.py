@@ -60,6 +60,8 @@ from lockstep import (  # noqa: E402
 from reproduce_viapoint import make_optimizer  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+# The optimizers as train.py task=viapoint_blocked builds them (its settings: no coverage).
+TASK = "viapoint_blocked"
 # Grid points before a run's first return are NaN; their means over runs are NaN (null).
 warnings.filterwarnings("ignore", "Mean of empty slice|Degrees of freedom", RuntimeWarning)
 LABELS = {
@@ -223,7 +225,11 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
     start = time.perf_counter()
     task, trials, n0 = load_task("viapoint")  # the default engine: numpy on a CPU
     runs = [
-        {"algo": algo, "seed": s, "opt": RecordBest(make_optimizer(algo, task, n0, s))}
+        {
+            "algo": algo,
+            "seed": s,
+            "opt": RecordBest(make_optimizer(algo, task, n0, s, task_name=TASK)),
+        }
         for algo in ("DIPOLE", "PoWER")
         for s in seeds
     ]
@@ -249,7 +255,7 @@ def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
             "seed": run["seed"],
             "task": run["task"],
             "obstacle": run["obstacle"],
-            "opt": RecordBest(make_optimizer("DIPOLE", task, n0, run["seed"])),
+            "opt": RecordBest(make_optimizer("DIPOLE", task, n0, run["seed"], task_name=TASK)),
         }
         for run in runs
         if run["algo"] == "DIPOLE"
@@ -347,7 +353,7 @@ def main() -> None:
     parser.add_argument("--grid-step", type=int, default=1, help="trials between grid points")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    config = compose_config("task=viapoint_blocked").task.block
+    config = compose_config(f"task={TASK}").task.block
     radius, threshold = float(config.radius), float(config.threshold)
     after = 300  # trials on the blocked layout
     chunks = [c.tolist() for c in np.array_split(np.arange(args.runs), max(1, args.workers))]

@@ -75,12 +75,21 @@ COLORS = {"DIPOLE": "tab:blue", "DIPOLE (paper)": "tab:cyan", "PoWER": "tab:red"
 
 
 def make_optimizer(
-    algo: str, task, n0: int, seed: int, name: str | None = None, overrides: tuple[str, ...] = ()
+    algo: str,
+    task,
+    n0: int,
+    seed: int,
+    name: str | None = None,
+    overrides: tuple[str, ...] = (),
+    task_name: str = "viapoint",
 ):
     """The optimizer of ``configs/algo/<name>.yaml`` (by default ``ALGORITHMS[algo]``; the
     defaults α = 1, m = 10, M = 5) with the config ``overrides``
-    (``algo.optimizer.<option>=<value>``), as ``train.py``'s ``algo=<name>`` builds it."""
-    config = compose_config(f"algo={name or ALGORITHMS[algo]}", *overrides).algo
+    (``algo.optimizer.<option>=<value>``), as ``train.py task=<task_name> algo=<name>``
+    builds it (with the task's settings for that algorithm, ``configs/task_algo/``)."""
+    config = compose_config(
+        f"task={task_name}", f"algo={name or ALGORITHMS[algo]}", *overrides
+    ).algo
     optimizer = instantiate(
         config.optimizer,
         theta0=task.theta0.double(),

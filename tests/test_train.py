@@ -327,6 +327,28 @@ def test_the_coverage_preset_is_the_library_variant_with_three_options_changed()
     assert cfg.optimizer.max_sampled == 6 and cfg.optimizer.accept_unjudged
 
 
+def test_the_viapoint_task_covers_from_its_default_budget_with_dipole_only():
+    """``configs/task_algo/viapoint_dipole.yaml`` (Hydra's specializing pattern) sets
+    ``coverage_from=300`` for ``task=viapoint algo=dipole`` and for no other pair; an
+    override sets it back."""
+    cfg = compose_config("task=viapoint")
+    assert cfg.algo.name == "dipole" and cfg.algo.optimizer.coverage_from == 300
+    opt = instantiate(
+        cfg.algo.optimizer, theta0=torch.zeros(2, dtype=torch.float64), sigma_start=1.0
+    )
+    assert opt.options.coverage_from == 300 and opt.options.unjudged_share is None
+    for overrides in (
+        ["task=viapoint", "algo.optimizer.coverage_from=null"],
+        ["task=viapoint", "algo=dipole_coverage"],
+        ["task=viapoint_blocked"],
+        ["task=cartpole"],
+        ["task=multimodal"],
+        ["task=viapoint", "algo=dipole_paper"],
+        ["task=viapoint", "algo=power"],  # (an option it does not have)
+    ):
+        assert compose_config(*overrides).algo.optimizer.get("coverage_from") is None, overrides
+
+
 def test_each_default_is_stated_once_in_the_code():
     """The YAML files hold the experiments' own settings only; every task's and optimizer's
     argument and default comes from its signature (DIPOLE's: DipoleOptions)."""
