@@ -320,7 +320,8 @@ def run_dipole_coverage(landscape: Landscape, budgets: Sequence[int], seed: int)
     return run_dipole(landscape, budgets, seed, **coverage_options())
 
 
-# The options of the opt-in row "DIPOLE (coverage from 300)" (also bench_viapoint_qd.py's).
+# The options of the opt-in row "DIPOLE (coverage from 300)": the defaults until trial 300,
+# the coverage options (their samples held to half) from then on.
 COVERAGE_FROM_300 = {"coverage_from": 300, "unjudged_share": 0.5}
 
 

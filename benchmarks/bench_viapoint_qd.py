@@ -5,7 +5,7 @@ oracle behaviour descriptor.
     python benchmarks/bench_viapoint_qd.py                    # 10 seeds, 300 and 1000 trials
     python benchmarks/bench_viapoint_qd.py --seeds 2 --methods DIPOLE --json /tmp/qd.json
     python benchmarks/bench_viapoint_qd.py --methods "DIPOLE (coverage)" --keep-others
-    python benchmarks/bench_viapoint_qd.py --methods "DIPOLE (coverage from 300)" --json /tmp/q.json
+    python benchmarks/bench_viapoint_qd.py --methods "DIPOLE (converge only)" --json /tmp/q.json
 
 **Task**: ``configs/task/viapoint.yaml`` (the simulated Barrett WAM, D = 9, 2 alternative
 viapoints at each of 3 pass times: 8 routes of return 1), as in
@@ -15,16 +15,17 @@ pass time (``ViapointTask.route``).
 **Covered**: a run covers a route at level r when one of the solutions it returns takes
 that route with return ≥ r (r = 0.9, the paper's count, and 0.95). Returned solutions:
 
-* **DIPOLE**: the final policy means (``configs/algo/dipole.yaml``: the library's defaults,
-  no reward range, n0 = 30), evaluated without exploration noise as in
-  ``reproduce_viapoint.py`` (these evaluations are not charged). DIPOLE is never told
-  routes: it sees returns only.
+* **DIPOLE**: as ``train.py task=viapoint`` runs it: the library's defaults
+  (``configs/algo/dipole.yaml``, no reward range, n0 = 30) until trial 300, the task's
+  default budget, and the coverage options from then on (``coverage_from=300``,
+  ``configs/task_algo/viapoint_dipole.yaml``). Returned: the final policy means, evaluated
+  without exploration noise as in ``reproduce_viapoint.py`` (these evaluations are not
+  charged). DIPOLE is never told routes: it sees returns only.
 * **DIPOLE (coverage)**: the same with the options a user sets to cover alternatives rather
   than converge on each (``configs/algo/dipole_coverage.yaml``: ``accept_unjudged=True``,
   ``max_sampled=None``, ``unjudged_share=0.5``).
-* **DIPOLE (coverage from 300)** (opt-in): the defaults until trial 300, the coverage
-  options from then on (``algo.optimizer.coverage_from=300``,
-  ``algo.optimizer.unjudged_share=0.5``).
+* **DIPOLE (converge only)** (opt-in): the library's defaults throughout
+  (``algo.optimizer.coverage_from=null``), as ``Dipole(...)`` without options runs.
 * **MAP-Elites** and **CMA-MAE** (pyribs 0.12): the elites of an archive with one cell per
   route, **the route given as the behaviour descriptor: an oracle** that DIPOLE does not
   get (it would not exist for a task whose alternatives are unknown). The elites are
@@ -60,26 +61,22 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # (lockstep, reproduce_viapoint)
 
-from bench_multioptima import COVERAGE_FROM_300  # noqa: E402
-
 ROOT = Path(__file__).resolve().parents[1]
 # (Appended, not inserted: the peers' seeds derive from their index.)
 METHODS = ("DIPOLE", "MAP-Elites", "CMA-MAE", "DIPOLE (coverage)")
-# Run when asked for (--methods): the defaults until trial 300, the coverage options from
-# then on (``coverage_from``; docs: Precision and coverage).
-OPT_IN = ("DIPOLE (coverage from 300)",)
-# DIPOLE's rows: the config (configs/algo/<name>.yaml, as train.py's algo=<name>) and its
+# Run when asked for (--methods): the library's defaults without the task's coverage_from
+# (docs: Precision and coverage).
+OPT_IN = ("DIPOLE (converge only)",)
+# DIPOLE's rows: the config (configs/algo/<name>.yaml, as train.py's task=viapoint
+# algo=<name>, with configs/task_algo/viapoint_<name>.yaml where there is one) and its
 # overrides.
 CONFIGS = {
     "DIPOLE": ("dipole", ()),
     "DIPOLE (coverage)": ("dipole_coverage", ()),
-    "DIPOLE (coverage from 300)": (
-        "dipole",
-        tuple(f"algo.optimizer.{key}={value}" for key, value in COVERAGE_FROM_300.items()),
-    ),
+    "DIPOLE (converge only)": ("dipole", ("algo.optimizer.coverage_from=null",)),
 }
 # The tables' order.
-SHOWN = ("DIPOLE", "DIPOLE (coverage)", "DIPOLE (coverage from 300)", "MAP-Elites", "CMA-MAE")
+SHOWN = ("DIPOLE", "DIPOLE (coverage)", "DIPOLE (converge only)", "MAP-Elites", "CMA-MAE")
 BUDGETS = (300, 1000)
 LEVELS = (0.9, 0.95)
 SEEDS = 10
