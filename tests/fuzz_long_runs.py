@@ -173,6 +173,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs=2, default=[0, 20], metavar=("FIRST", "END"))
     parser.add_argument("--budget", type=int, default=None, help="trials a case (default: drawn)")
     parser.add_argument("--minutes", type=float, default=None, help="start no case after this")
+    parser.add_argument(
+        "--every", type=int, default=50, help="a line of progress every this many cases"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     failures = cases = 0
@@ -189,6 +192,12 @@ def main() -> None:
         if finding:
             failures += 1
             print(f"seed {seed}: {finding}", flush=True)
+        if cases % args.every == 0:  # (a killed run still reports how far it got)
+            minutes = (time.perf_counter() - began) / 60
+            print(
+                f"... {cases} cases to seed {seed}, {failures} failures, {minutes:.0f} min",
+                flush=True,
+            )
     print(f"{cases} cases (seeds {args.seeds[0]}-{args.seeds[0] + cases - 1}), {failures} failures")
 
 
