@@ -257,8 +257,8 @@ def help_text(config: str) -> str:
         "",
         f"== Tasks: task={_choices('task')} ==",
         f"== Algorithms: algo={_choices('algo')} ==",
-        f"== A task's settings for one algorithm (task_algo/<task>_<algo>, applied after "
-        f"both; the run's config below shows them): {_choices('task_algo')} ==",
+        f"== One task's settings for one algorithm (task_algo/<task>_<algo>): "
+        f"{_choices('task_algo')} ==",
         "",
         "== Run ==",
     ]
