@@ -106,6 +106,8 @@ def train(cfg: DictConfig) -> dict:
         # The ask/tell loop: one iteration a batch.
         progress = console.Progress(cfg.trials, optimizer.trials, enabled=cfg.progress)
         figure_trials, last_batch_cut = None, False
+        # DIPOLE's coverage_from (task=viapoint sets it): said once, when the run reaches it.
+        cover_from = getattr(getattr(optimizer, "options", None), "coverage_from", None)
         with StopRequest() as stop, progress.messages():
             while optimizer.trials < cfg.trials and not stop:
                 rows = optimizer.batch_size
@@ -128,6 +130,13 @@ def train(cfg: DictConfig) -> dict:
                         f"of {rows} rows, to end at {cfg.trials} trials"
                     )
                     rows, last_batch_cut = cfg.trials - optimizer.trials, True
+                if cover_from is not None and optimizer.trials >= cover_from:
+                    log.info(
+                        f"from trial {optimizer.trials} on, DIPOLE covers alternatives "
+                        f"(coverage_from={cover_from}): candidates the hill-valley probe "
+                        "cannot judge become policies, and every active policy is sampled"
+                    )
+                    cover_from = None
                 theta = optimizer.ask(max_rows=rows)
                 rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
                 optimizer.tell(theta, rewards)

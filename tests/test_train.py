@@ -5,6 +5,7 @@ import dataclasses
 import itertools
 import json
 import os
+import re
 import subprocess
 import sys
 import typing
@@ -197,6 +198,19 @@ def test_resume_continues_exactly(finished_run, tmp_path):
     assert a["history"] == b["history"]
     assert a["best_theta"] == b["best_theta"]
     assert [p["mean"] for p in a["policies"]] == [p["mean"] for p in b["policies"]]
+
+
+def test_a_run_says_when_it_starts_covering(finished_run, tmp_path):
+    train(
+        "task=multimodal",
+        "trials=60",
+        "algo.optimizer.coverage_from=30",
+        f"hydra.run.dir={tmp_path}",
+    )
+    said = re.findall(r"from trial (\d+) on, DIPOLE covers alternatives \(coverage_from=30\)",
+                      (tmp_path / "train.log").read_text())  # fmt: skip
+    assert len(said) == 1 and 30 <= int(said[0]) < 40, said  # at the first ask from trial 30
+    assert "covers alternatives" not in (finished_run / "train.log").read_text()
 
 
 def test_multirun_over_seeds(tmp_path):
