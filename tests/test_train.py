@@ -347,6 +347,8 @@ def test_the_viapoint_task_covers_from_its_default_budget_with_dipole_only():
     override sets it back."""
     cfg = compose_config("task=viapoint")
     assert cfg.algo.name == "dipole" and cfg.algo.optimizer.coverage_from == 300
+    # (It is the task's default budget, written in both files: they must move together.)
+    assert cfg.task.trials == cfg.algo.optimizer.coverage_from
     opt = instantiate(
         cfg.algo.optimizer, theta0=torch.zeros(2, dtype=torch.float64), sigma_start=1.0
     )
