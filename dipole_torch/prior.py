@@ -37,6 +37,9 @@ class NormalInverseWishartPrior:
             covariance (drawn or estimated) to keep the mixture non-degenerate; the paper
             derives it from the initial exploration noise.
 
+    The tensors are kept in float64 (``dipole_torch.gaussian.DTYPE``): a float32 or list
+    field is converted when the prior is built.
+
     Conventions: Σ ~ IW(ν, Ψ) has Σ⁻¹ ~ Wishart(ν, Ψ⁻¹) and E[Σ] = Ψ / (ν − D − 1); it is
     drawn directly by Bartlett's decomposition (``dipole_torch.sampling.inverse_wishart``);
     tests/test_sampling.py checks the moments against ``torch.distributions.Wishart``'s.
@@ -49,6 +52,12 @@ class NormalInverseWishartPrior:
     regularization: Tensor
 
     def __post_init__(self) -> None:
+        # The DP mathematics runs in float64 (a float32 prior met float64 data deep inside
+        # the sampler, with an error about index_put's dtypes).
+        for name in ("mean_loc", "mean_covariance", "scale", "regularization"):
+            value = getattr(self, name)
+            if not isinstance(value, Tensor) or value.dtype != DTYPE:
+                setattr(self, name, torch.as_tensor(value, dtype=DTYPE))
         self._check(well_conditioned=True)
 
     def _check(self, well_conditioned: bool) -> None:

@@ -574,3 +574,16 @@ def test_data_far_off_the_prior_fail_with_an_error_that_names_the_scales(method)
     scaled = (y - y.mean(0)) / y.std(0)
     state = DPSampler(prior, method=method).fit(scaled, num_sweeps=20, generator=g)
     assert torch.isfinite(state.means).all()
+
+
+@pytest.mark.parametrize("method", ["neal8", "slice"])
+@pytest.mark.parametrize("data_dtype", [torch.float32, F64])
+def test_a_float32_prior_is_kept_in_float64_and_fits(method, data_dtype):
+    """torch's default dtype makes a float32 prior; it met float64 data deep in the sweep
+    with an error about index_put's dtypes."""
+    prior = NormalInverseWishartPrior.from_exploration(torch.zeros(2), 9 * torch.eye(2))
+    assert {prior.mean_loc.dtype, prior.scale.dtype, prior.regularization.dtype} == {F64}
+    g = torch.Generator().manual_seed(0)
+    y = torch.cat([torch.randn(10, 2, generator=g) - 5, torch.randn(10, 2, generator=g) + 5])
+    state = DPSampler(prior, method=method).fit(y.to(data_dtype), num_sweeps=5, generator=g)
+    assert state.labels.shape == (20,)
