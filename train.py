@@ -112,7 +112,7 @@ def train(cfg: DictConfig) -> dict:
             while optimizer.trials < cfg.trials and not stop:
                 rows = optimizer.batch_size
                 block_due = block is not None and blocked is None and block.trial < cfg.trials
-                if block_due and optimizer.trials + rows > block.trial:  # the world changes
+                if block_due and optimizer.trials >= block.trial:  # the world changes
                     if optimizer.trials + optimizer.num_policies > cfg.trials:
                         log.info(f"no block: re-evaluating would take the run past {cfg.trials}")
                         break
@@ -121,7 +121,9 @@ def train(cfg: DictConfig) -> dict:
                     history.append(writer.log_iteration(optimizer))
                     progress.update(optimizer.trials, optimizer.trials - trials, history[-1])
                     continue
-                if optimizer.trials + rows > cfg.trials:
+                if block_due and optimizer.trials + rows > block.trial:
+                    rows = block.trial - optimizer.trials  # the block comes at its trial exactly
+                elif optimizer.trials + rows > cfg.trials:
                     # The batch crossing the budget: its first rows end the run at the budget
                     # exactly. The checkpoint keeps the run before it.
                     save_checkpoint()
