@@ -40,14 +40,15 @@ class SearchResult:
     def __str__(self) -> str:
         lines = [
             f"best return {self.best_reward:.6g} after {self.trials} trials "
-            f"({self.iterations} iterations); {self.means.shape[0]} policies:"
+            f"({self.iterations} iterations); {self.means.shape[0]} policies, best first:"
         ]
+        # Best first, each named by its row of ``means`` (the index a user reads it with).
         order = torch.argsort(self.best_rewards, descending=True, stable=True).tolist()
-        for rank, k in enumerate(order):
+        for k in order:
             state = "converged" if self.converged[k] else "active" if self.active[k] else "waiting"
             mean = ", ".join(f"{v:.4g}" for v in self.means[k].tolist())
             lines.append(
-                f"  {rank + 1}. theta = [{mean}]  best return {float(self.best_rewards[k]):.6g}"
+                f"  means[{k}] = [{mean}]  best return {float(self.best_rewards[k]):.6g}"
                 f"  ({state})"
             )
         return "\n".join(lines)
