@@ -96,6 +96,8 @@ def test_a_bad_value_is_one_line_naming_it_and_exit_status_2(overrides, line, tm
     errors = [text for text in result.stderr.splitlines() if text.strip()]
     assert len(errors) == 1 and errors[0].startswith(line), result.stderr
     assert "Traceback" not in result.stderr + result.stdout
+    # The run's directory says why it stopped.
+    assert errors[0] in (tmp_path / "train.log").read_text()
 
 
 def test_a_second_signal_stops_at_once_without_a_traceback(tmp_path):

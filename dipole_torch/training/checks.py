@@ -4,12 +4,14 @@ Types are checked when Hydra composes the config against the schemas (OmegaConf 
 key); Hydra refuses an unknown task or algorithm, listing the available ones. What remains
 (ranges, whether a device exists, a checkpoint that does not fit) is checked here, by the
 optimizers' and tasks' constructors, and on resume: ``reported`` turns each into one
-line on stderr naming the key and the value, and exit status 2, with no traceback.
+line on stderr naming the key and the value (also written to the run's ``train.log``), and
+exit status 2, with no traceback.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import sys
@@ -128,5 +130,12 @@ def _first_line(error: BaseException) -> str:
 
 def _exit(message: str) -> None:
     sys.stdout.flush()
-    print(f"error: {message} (HYDRA_FULL_ERROR=1 for the traceback)", file=sys.stderr)
+    line = f"error: {message} (HYDRA_FULL_ERROR=1 for the traceback)"
+    print(line, file=sys.stderr)
+    # The run's train.log says why the run stopped (the directory exists by now); the line
+    # goes to the log's files only, as stderr already shows it on the terminal.
+    record = logging.LogRecord("train", logging.ERROR, __file__, 0, line, None, None)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
     raise SystemExit(EXIT_BAD_CONFIG)
