@@ -48,7 +48,6 @@ class SearchResult:
             state = "converged" if self.converged[k] else "active" if self.active[k] else "waiting"
             mean = ", ".join(f"{v:.4g}" for v in self.means[k].tolist())
             lines.append(
-                f"  means[{k}] = [{mean}]  best return {float(self.best_rewards[k]):.6g}"
-                f"  ({state})"
+                f"  means[{k}] = [{mean}]  best return {float(self.best_rewards[k]):.6g}  ({state})"
             )
         return "\n".join(lines)
