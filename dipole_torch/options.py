@@ -236,6 +236,20 @@ PAPER: dict[str, Any] = dict(
 )
 
 
+# The options that act only through mechanisms PAPER turns off: with PAPER's values, a
+# restart needs retirement (``restarts``), a wake needs ``refine`` (``refine_share``), and
+# the rest need the hill-valley test; set alone they change nothing or are refused. The
+# command line's ``algo=dipole_paper`` leaves them out.
+PAPER_INERT: tuple[str, ...] = (
+    "restarts",
+    "refine_share",
+    "pair_points",
+    "accept_unjudged",
+    "unjudged_share",
+    "coverage_from",
+)
+
+
 def _positive_real(value, name: str) -> None:
     check_real(value, name)
     if not (math.isfinite(value) and value > 0):

@@ -1,15 +1,17 @@
 """DIPOLE's options (dipole_torch.options): one validated object; every combination of the
 switches runs or is refused at construction naming the conflict."""
 
+import dataclasses
 import itertools
 import math
+import typing
 
 import pytest
 import torch
 
 from dipole_torch import Dipole, DipoleOptions
 from dipole_torch.archive import PROBE
-from dipole_torch.options import PAPER
+from dipole_torch.options import PAPER, PAPER_INERT
 
 F64 = torch.float64
 OPTIMA = torch.tensor([[1.5, 0.0], [-1.5, 0.0]], dtype=F64)
@@ -158,6 +160,48 @@ def test_the_papers_set_and_a_checked_copy():
         options.explore = 0.3  # type: ignore[misc]
     mixed = Dipole(torch.zeros(2), 1.0, options=paper, M=3).options
     assert mixed == paper.replace(M=3)
+
+
+# A value other than each option's default.
+INERT_VALUES = {
+    "restarts": "start",
+    "refine_share": 0.6,
+    "pair_points": 4,
+    "accept_unjudged": True,
+    "unjudged_share": 0.5,
+    "coverage_from": 40,
+}
+
+
+@pytest.mark.parametrize("name", PAPER_INERT)
+def test_the_options_the_papers_algorithm_leaves_inert_change_nothing_or_are_refused(name):
+    """``algo=dipole_paper`` leaves these out of its schema: under ``Dipole.paper`` they
+    act on nothing (or are refused), so a user setting one would be misled."""
+    assert getattr(DipoleOptions(), name) != INERT_VALUES[name]
+
+    def run(**changes):
+        g = torch.Generator().manual_seed(3)
+        opt = Dipole.paper(torch.zeros(2), 2.0, bounds=(-5.0, 5.0), generator=g, **changes)
+        while opt.trials < 150:
+            theta = opt.ask()
+            opt.tell(theta, torch.exp(-(theta - 1.0).square().sum(-1)) + 0.1)
+        return opt.policy_means
+
+    try:
+        changed = run(**{name: INERT_VALUES[name]})
+    except ValueError as error:
+        assert "needs hill_valley=True" in str(error) or "needs accept_unjudged" in str(error)
+        return
+    assert torch.equal(changed, run())
+
+
+def test_the_papers_command_line_schema_leaves_the_inert_options_out():
+    from dipole_torch.training.config import algo_schemas
+
+    schema = algo_schemas()["dipole_paper"]
+    optimizer = {f.name for f in dataclasses.fields(typing.get_type_hints(schema)["optimizer"])}
+    assert not optimizer & set(PAPER_INERT) and not optimizer & set(PAPER)
+    assert {"alpha", "m", "M"} <= optimizer
 
 
 EDGES = {

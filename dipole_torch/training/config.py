@@ -23,7 +23,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-from dipole_torch.training.schemas import _field, builds
+from dipole_torch.training.schemas import _field, _first_sentence, builds
 
 __all__ = ["ALGOS", "TASKS", "AlgoConfig", "Config", "TaskConfig", "help_text", "register"]
 
@@ -95,7 +95,7 @@ def _task(name: str, target: str, module: str, exclude=(), extra=()) -> type:
         exclude=("dtype", *exclude),
         values={"device": "${device}"},
     )
-    summary = (cls.__doc__ or name).strip().splitlines()[0]
+    summary = _first_sentence((cls.__doc__ or name).strip().split("\n\n")[0])
     fields = [("env", env, field(default_factory=env, metadata={"help": f"{module}.{target}"}))]
     return dataclasses.make_dataclass(
         f"{target}Schema", [*fields, *extra], bases=(TaskConfig,), namespace={"__doc__": summary}
@@ -128,7 +128,7 @@ def algo_schemas() -> dict[str, type]:
     """``{name: schema}`` of the algorithms: DIPOLE's options (the paper's set fixed for
     ``dipole_paper``) and PoWER's arguments."""
     from dipole_torch import Dipole, DipoleOptions, Power
-    from dipole_torch.options import PAPER
+    from dipole_torch.options import PAPER, PAPER_INERT
 
     given = ("theta0", "sigma_start", "n0", "reward_range", "generator", "options")
     return {
@@ -142,7 +142,7 @@ def algo_schemas() -> dict[str, type]:
             "dipole_paper",
             "DIPOLE exactly as in the paper (Dipole.paper: its options fixed, counts free)",
             builds(DipoleOptions, target_path="dipole_torch.Dipole.paper",
-                   exclude=(*given, *PAPER), also=(Dipole, ("bounds",)),
+                   exclude=(*given, *PAPER, *PAPER_INERT), also=(Dipole, ("bounds",)),
                    name="DipolePaperConfig"),
         ),
         "power": _algo(
@@ -242,6 +242,32 @@ def _choices(group: str) -> str:
     return ", ".join(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml")))
 
 
+def _presets() -> list[str]:
+    """A heading for each algorithm YAML of ``configs/algo`` that is another's settings with
+    a few changed (``dipole_coverage``): what it is built on and what it changes."""
+    from omegaconf import OmegaConf
+
+    folder = importlib.resources.files("dipole_torch.configs") / "algo"
+    lines = []
+    for path in sorted(folder.iterdir(), key=lambda p: p.name):
+        name = path.name.removesuffix(".yaml")
+        if not path.name.endswith(".yaml") or name in ALGOS:
+            continue
+        preset = OmegaConf.create(path.read_text())
+        base = next(d for d in preset.get("defaults", []) if isinstance(d, str))
+        changes = OmegaConf.to_container(preset.get("optimizer", {}))
+        values = ", ".join(f"{key}={_yaml(value)}" for key, value in changes.items())
+        lines += ["", f"== algo={name}: the algo={base} settings above, with {values} =="]
+    return lines
+
+
+def _yaml(value: Any) -> str:
+    """``value`` as a command-line override writes it (``true``, ``null``, ``0.5``)."""
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def help_text(config: str) -> str:
     """The ``--help`` page: the choices, then every field with its type, default and help,
     then ``config`` (this run's config, as YAML)."""
@@ -275,6 +301,7 @@ def help_text(config: str) -> str:
     for name, schema in ALGOS.items():
         lines += ["", f"== algo={name}: {schema.__doc__} =="]
         lines += _fields(typing.get_type_hints(schema)["optimizer"], "algo.optimizer.")
+    lines += _presets()
     lines += [
         "",
         "== This run's config (with the overrides given) ==",
