@@ -408,7 +408,18 @@ def test_help_lists_every_field_with_its_help():
     assert result.returncode == 0, result.stderr
     text = " ".join(result.stdout.split())  # help lines are wrapped
     assert "algo.optimizer.alpha: float = 1.0 DP concentration α > 0 (paper: 1)" in text
-    assert "task.env.reward_alpha: float = 2.5" in text
+    assert "task.env.reward_alpha: float = 2.5 α of eq. 9 in 1/m" in text  # not cut at "eq."
+    # A clause after ";" is kept (the second choice), a pointer into the code's docs is not.
+    assert '"box" (default) uniform in the box' in text and '"start" always N(θ0' in text
+    assert "(see " not in text and "; see " not in text
+    assert (
+        "== task=viapoint: Move an arm's end effector from a start to a target point "
+        "through one of several alternative viapoints at each of a few pass times ==" in text
+    )
+    assert (
+        "== algo=dipole_coverage: the algo=dipole settings above, with "
+        "accept_unjudged=true, max_sampled=null, unjudged_share=0.5 ==" in text
+    )
     assert "trials: int = the value of task.trials" in text
     assert "python train.py [task=<task>]" in text
     assert "task.block.trial: int trials before the block" in text  # a section that may be null

@@ -132,15 +132,31 @@ def docstring_help(doc: str | None) -> dict[str, str]:
 
 
 def _first_sentence(text: str) -> str:
-    """The text up to its first ``.`` or ``;`` outside parentheses, reST roles unwrapped."""
+    """The text up to its first ``.`` outside parentheses that ends a sentence (the next word
+    starts with a capital: "eq. 9" and "e.g. a" go on), reST roles unwrapped."""
     text = re.sub(r"``([^`]*)``", r"\1", " ".join(text.split()))
     text = re.sub(r":\w+:`~?([^`]*)`", r"\1", text)
     depth = 0
     for i, char in enumerate(text):
         depth += {"(": 1, "[": 1, ")": -1, "]": -1}.get(char, 0)
-        if char in ".;" and depth == 0 and (i + 1 == len(text) or text[i + 1] == " "):
-            return text[:i]
-    return text.rstrip(".;")
+        if char != "." or depth != 0:
+            continue
+        if i + 1 == len(text) or (
+            text[i + 1] == " "
+            and not text[i + 2 : i + 3].islower()
+            and not text[i + 2 : i + 3].isdigit()
+        ):
+            return _without_references(text[:i])
+    return _without_references(text.rstrip("."))
+
+
+def _without_references(sentence: str) -> str:
+    """``sentence`` without its pointers into the code's docs ("; see DPSampler.fit",
+    "(see Description)"), which ``--help`` cannot follow."""
+    sentence = re.sub(r";\s*see [^();]*\)", ")", sentence)  # "(the default; see below)"
+    sentence = re.sub(r" \(see [^()]*\)", "", sentence)
+    clauses = re.split(r"; (?![^()\[\]]*[)\]])", sentence)  # at "; " outside brackets
+    return "; ".join(c for c in clauses if not re.search(r"\bsee\b", c)) or clauses[0]
 
 
 def _parameters(target) -> tuple[list[tuple[str, Any]], dict[str, Any], str | None]:
