@@ -236,6 +236,30 @@ def test_a_checkpoint_from_before_waking_resumes_as_it_ran(tmp_path):
     resumes_without(tmp_path / "zero", common, removed, ("algo.optimizer.refine=0.0",))
 
 
+def test_a_paper_checkpoint_with_the_options_its_schema_dropped_resumes(tmp_path):
+    """algo=dipole_paper's schema listed options its algorithm leaves inert (restarts,
+    refine_share, pair_points, the unjudged ones) until they were dropped: its checkpoints
+    from before have them, and resume without them."""
+    run = tmp_path / "run"
+    common = ("task=multimodal", "algo=dipole_paper", "figure_every=0")
+    train(*common, "trials=20", f"hydra.run.dir={run}")
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
+    lines = checkpoint["config"].splitlines()
+    at = lines.index("    alpha: 1.0") + 1
+    dropped = [
+        "    restarts: box",
+        "    pair_points: 1",
+        "    accept_unjudged: false",
+        "    unjudged_share: null",
+        "    coverage_from: null",
+        "    refine_share: 0.2",
+    ]
+    checkpoint["config"] = "\n".join([*lines[:at], *dropped, *lines[at:]]) + "\n"
+    torch.save(checkpoint, run / "checkpoint.pt")
+    train(*common, "trials=40", f"resume={run / 'checkpoint.pt'}")
+    assert json.loads((run / "results.json").read_text())["trials"] == 40
+
+
 def test_a_cartpole_checkpoint_from_before_the_engines_resumes(tmp_path):
     """Checkpoints written before task.env.engine existed lack it: they resume with "auto"."""
     common = ("task=cartpole", "algo=power", "figure_every=0", "task.env.steps=50")

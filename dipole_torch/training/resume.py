@@ -22,6 +22,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from dipole_torch.checkpoint import CheckpointError, atomic_save, load_checkpoint
+from dipole_torch.options import PAPER_INERT
 
 __all__ = [
     "CHECKPOINT_KEYS",
@@ -83,6 +84,10 @@ ADDED_KEYS = {
     # Runs from before the coverage options could start at a trial.
     "algo.optimizer.coverage_from": None,
 }
+# Keys an algorithm's config no longer has, whose values changed nothing in its runs: a
+# checkpoint that has them resumes without them (``algo=dipole_paper`` listed the options
+# its algorithm leaves inert until they were dropped from its schema).
+DROPPED_KEYS = {"dipole_paper": tuple(f"algo.optimizer.{key}" for key in PAPER_INERT)}
 # Task classes that moved (top-level tasks/ became dipole_torch.tasks): a checkpoint whose
 # config names the old module resumes.
 MOVED_PREFIXES = {"tasks.": "dipole_torch.tasks."}
@@ -162,6 +167,11 @@ def load_resume(cfg: DictConfig, overrides: list[str]) -> dict:
             for parent in parents:
                 node = node.setdefault(parent, {})
             node[leaf] = filled[key] = value
+    algo = saved.get("algo", {})
+    optimizer = algo.get("optimizer") if isinstance(algo, dict) else None
+    for key in DROPPED_KEYS.get(algo.get("name") if isinstance(algo, dict) else None, ()):
+        if isinstance(optimizer, dict) and key not in flatten(current):
+            optimizer.pop(key.removeprefix("algo.optimizer."), None)
     env = saved.get("task", {}).get("env")
     target = env.get("_target_") if isinstance(env, dict) else None
     for old, new in MOVED_PREFIXES.items():
