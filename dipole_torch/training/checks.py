@@ -11,6 +11,7 @@ exit status 2, with no traceback.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import re
@@ -37,7 +38,16 @@ class ConfigValueError(ValueError):
 
 
 def check_config(cfg: DictConfig) -> None:
-    """Refuse values that have the right type but not a valid value, naming the key."""
+    """Refuse values that have the right type but not a valid value, and keys that no schema
+    has (added with ``+``, which Hydra suggests for a misspelled key), naming the key."""
+    unknown = _unknown_keys(cfg)
+    if unknown:
+        raise ConfigValueError(
+            unknown[0],
+            OmegaConf.select(cfg, unknown[0]),
+            f"unknown key(s) {', '.join(unknown)}: no setting of that name (a misspelling? "
+            "python train.py --help lists every key)",
+        )
     counts = (
         ("trials", "trials (the trial budget)", 1),
         ("task.n0", "task.n0 (initial samples)", 1),
@@ -71,6 +81,23 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigValueError(
             "resume", cfg.resume, f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}"
         )
+
+
+def _unknown_keys(node: DictConfig, prefix: str = "") -> list[str]:
+    """The dotted keys under ``node`` that its schema (a dataclass) does not have."""
+    unknown = []
+    schema = OmegaConf.get_type(node)
+    names = (
+        {f.name for f in dataclasses.fields(schema)} if dataclasses.is_dataclass(schema) else None
+    )
+    for key in node.keys():
+        if names is not None and key not in names:
+            unknown.append(f"{prefix}{key}")
+            continue
+        child = node._get_node(key)
+        if isinstance(child, DictConfig) and not child._is_none() and not child._is_missing():
+            unknown += _unknown_keys(child, f"{prefix}{key}.")
+    return unknown
 
 
 def check_device(device: str) -> None:
