@@ -125,8 +125,15 @@ def plot_best_and_average(
 
 
 def quartiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``([G], [G])`` the 25 % and 75 % quantiles over runs of ``values: [runs, G]``."""
-    return np.nanquantile(values, 0.25, axis=0), np.nanquantile(values, 0.75, axis=0)
+    """``([G], [G])`` the 25 % and 75 % quantiles over runs of ``values: [runs, G]``, each
+    over the runs that have a value there (NaN: not yet); NaN where no run has one (a grid
+    point before every run's first return, or never reached: null in the JSON)."""
+    seen = ~np.isnan(values).all(axis=0)
+    q25, q75 = np.full(values.shape[1:], np.nan), np.full(values.shape[1:], np.nan)
+    if seen.any():
+        q25[seen] = np.nanquantile(values[:, seen], 0.25, axis=0)
+        q75[seen] = np.nanquantile(values[:, seen], 0.75, axis=0)
+    return q25, q75
 
 
 def data_limits(

@@ -218,6 +218,12 @@ def trials_to(rows: np.ndarray, column: int, threshold: float) -> int | None:
     return int(rows[hit[0], 0]) if len(hit) else None
 
 
+def trials_said(reached: list[int | None]) -> str:
+    """``trials_to``'s values by run, as printed: ``never`` for a run that did not reach the
+    threshold within the budget (``None``, null in the JSON)."""
+    return "[" + ", ".join("never" if t is None else str(t) for t in reached) + "]"
+
+
 def run_seeds(job: tuple) -> tuple[list[int], dict[str, list[dict]], float]:
     """Every algorithm's scenario for ``seeds``: per algorithm, one record per run."""
     seeds, after, radius, threshold = job
@@ -472,9 +478,10 @@ def main() -> None:
         s = summary[algo]
         print(
             f"{algo}: executed reaches {threshold} within {after} trials in "
-            f"{s['trials_to_threshold_reached']} runs, trials {s['trials_to_threshold']}; "
-            f"best policy mean in {s['trials_to_threshold_policy_mean_reached']}, trials "
-            f"{s['trials_to_threshold_policy_mean']}; final executed "
+            f"{s['trials_to_threshold_reached']} runs, trials "
+            f"{trials_said(s['trials_to_threshold'])}; best policy mean in "
+            f"{s['trials_to_threshold_policy_mean_reached']}, trials "
+            f"{trials_said(s['trials_to_threshold_policy_mean'])}; final executed "
             f"{s['final_executed'][0]:.3f} ± {s['final_executed'][1]:.3f}, best policy mean "
             f"{s['final_best_policy_mean'][0]:.3f} ± {s['final_best_policy_mean'][1]:.3f}"
         )

@@ -25,7 +25,8 @@ def _run(code: str, where: Path) -> None:
 
 
 def test_pyro_prior_example_keeps_only_the_policies_the_change_allows(tmp_path, capsys):
-    # A finished run's policies.pt, as train.py writes it: four policies, two with θ_0 > 0.
+    # A finished run's policies.pt, as train.py writes it: four policies, two with θ_0 > 0
+    # (and its results.json, by which the example finds the newest finished run).
     means = 0.7 * torch.tensor([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
     policies = GaussianMixture(
         torch.tensor([3.0, 5.0, 4.0, 4.0]), means, 0.01 * torch.eye(2).expand(4, 2, 2)
@@ -33,6 +34,7 @@ def test_pyro_prior_example_keeps_only_the_policies_the_change_allows(tmp_path, 
     run = tmp_path / "outputs" / "multimodal" / "dipole" / "seed0_2026-01-01_00-00-00"
     run.mkdir(parents=True)
     torch.save({"policies": policies.state_dict()}, run / "policies.pt")
+    (run / "results.json").write_text("{}")
     _run(_example("guide/pyro.md", "pyro-prior-example"), tmp_path)
     out = capsys.readouterr().out
     share = [float(p) for p in re.search(r"change: \[(.*)\]", out).group(1).split(",")]
