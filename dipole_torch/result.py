@@ -25,6 +25,9 @@ class SearchResult:
         active: ``[K]`` whether each policy is still sampled (not retired; beyond
             ``max_sampled`` it waits for its turn).
         converged: ``[K]`` whether each policy's exploration has converged.
+        ids: ``[K]`` each policy's id (int64), kept for the whole run while rows move as
+            policies are dropped: ``train.py``'s summary and ``results.json`` name policies
+            by it.
     """
 
     best_theta: Tensor
@@ -36,18 +39,21 @@ class SearchResult:
     best_rewards: Tensor
     active: Tensor
     converged: Tensor
+    ids: Tensor
 
     def __str__(self) -> str:
         lines = [
             f"best return {self.best_reward:.6g} after {self.trials} trials "
             f"({self.iterations} iterations); {self.means.shape[0]} policies, best first:"
         ]
-        # Best first, each named by its row of ``means`` (the index a user reads it with).
+        # Best first, each named by its row of ``means`` (the index a user reads it with)
+        # and its id (the name train.py's outputs give it).
         order = torch.argsort(self.best_rewards, descending=True, stable=True).tolist()
         for k in order:
             state = "converged" if self.converged[k] else "active" if self.active[k] else "waiting"
             mean = ", ".join(f"{v:.4g}" for v in self.means[k].tolist())
             lines.append(
-                f"  means[{k}] = [{mean}]  best return {float(self.best_rewards[k]):.6g}  ({state})"
+                f"  means[{k}] = [{mean}]  best return {float(self.best_rewards[k]):.6g}"
+                f"  ({state}, policy {int(self.ids[k])})"
             )
         return "\n".join(lines)

@@ -284,6 +284,7 @@ class PolicySearch:
             best_rewards=self.policy_best_rewards,
             active=self.active.clone(),
             converged=self.converged,
+            ids=self.policy_set.ids.clone(),
         )
 
     # ------------------------------------------------------------------ ask

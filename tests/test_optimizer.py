@@ -272,6 +272,30 @@ def test_long_successful_run_retires_converged_policies_and_keeps_going():
     assert asked.shape[0] >= int(opt.active.sum())
 
 
+def test_the_result_names_each_row_by_the_id_train_py_gives_it():
+    # Policies are dropped and added during a run, so rows move while ids stay: the result's
+    # ids are the numbers results.json and train.py's summary use, row for row.
+    from dipole_torch.tasks.multimodal import MultimodalTask
+
+    from dipole_torch.training.results import policy_summary
+
+    task = MultimodalTask(dim=2, num_optima=4)
+    opt = Dipole(task.theta0, task.sigma_start, generator=torch.Generator().manual_seed(0))
+    while opt.trials < 400:
+        theta = opt.ask()
+        opt.tell(theta, task.evaluate(theta))
+    result = opt.result
+    assert result.ids.dtype == torch.int64 and result.ids.shape == (opt.num_policies,)
+    assert len(set(result.ids.tolist())) == opt.num_policies
+    assert int(result.ids.max()) >= opt.num_policies  # some were dropped: ids are not rows
+    by_id = {p["id"]: p for p in policy_summary(task, opt)}
+    assert sorted(by_id) == sorted(result.ids.tolist())
+    for k, policy_id in enumerate(result.ids.tolist()):
+        assert f"means[{k}] = " in str(result) and f"policy {policy_id})" in str(result)
+        mean = torch.tensor(by_id[policy_id]["mean"], dtype=result.means.dtype)
+        assert torch.equal(mean, result.means[k])  # the same row (in the task's dtype)
+
+
 def test_a_run_without_scouts_restarts_when_every_policy_has_retired():
     # explore=0 (no scouts): once every policy has converged and retired, the next ask is a
     # restart of n0 draws from N(θ0, Σ_start), never an empty batch (which ended the run).
