@@ -42,9 +42,11 @@ class SearchResult:
     ids: Tensor
 
     def __str__(self) -> str:
+        count = self.means.shape[0]
+        noun = "policy" if count == 1 else "policies"
         lines = [
             f"best return {self.best_reward:.6g} after {self.trials} trials "
-            f"({self.iterations} iterations); {self.means.shape[0]} policies, best first:"
+            f"({self.iterations} iterations); {count} {noun}, best first:"
         ]
         # Best first, each named by its row of ``means`` (the index a user reads it with)
         # and its id (the name train.py's outputs give it).

@@ -275,8 +275,6 @@ def test_long_successful_run_retires_converged_policies_and_keeps_going():
 def test_the_result_names_each_row_by_the_id_train_py_gives_it():
     # Policies are dropped and added during a run, so rows move while ids stay: the result's
     # ids are the numbers results.json and train.py's summary use, row for row.
-    from dipole_torch.tasks.multimodal import MultimodalTask
-
     from dipole_torch.training.results import policy_summary
 
     task = MultimodalTask(dim=2, num_optima=4)
@@ -294,6 +292,14 @@ def test_the_result_names_each_row_by_the_id_train_py_gives_it():
         assert f"means[{k}] = " in str(result) and f"policy {policy_id})" in str(result)
         mean = torch.tensor(by_id[policy_id]["mean"], dtype=result.means.dtype)
         assert torch.equal(mean, result.means[k])  # the same row (in the task's dtype)
+
+
+def test_powers_result_is_one_policy_with_id_zero():
+    opt = Power(torch.zeros(2, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
+    theta = opt.ask()
+    opt.tell(theta, two_optima(theta))
+    assert opt.result.ids.tolist() == [0]
+    assert "; 1 policy, best first:" in str(opt.result) and "(active, policy 0)" in str(opt.result)
 
 
 def test_a_run_without_scouts_restarts_when_every_policy_has_retired():
