@@ -134,9 +134,14 @@ class Dipole(PolicySearch):
         )  # fmt: skip
         self.retirement = Retirement(
             options.retire_std, options.merge_radius, self.exploration.keeps_covariance,
-            options.refine, options.refine_share, options.retire_spread,
+            options.refine, options.refine_share, options.retire_spread, options.refine_gate,
+            options.wake_while_active,
         )  # fmt: skip
-        self.matching = ReplaceMatching() if options.matching == "replace" else OverlapMatching()
+        self.matching = (
+            ReplaceMatching()
+            if options.matching == "replace"
+            else OverlapMatching(options.start_cap)
+        )
         self.exploration.register(self)
         self.matching.register(self)
         self.retirement.register(self)

@@ -52,7 +52,13 @@ class DipoleOptions:
                            1e-4 of the returns' range
     ``refine``             0.1: wake retired policies      0 (never)
                            for a 10× finer threshold
-                           once none is active
+                           once every one has retired
+    ``refine_gate``        0.05: the policies near the     (no wakes)
+                           best return are woken first
+    ``wake_while_active``  no: wakes once no policy is     (no wakes)
+                           active
+    ``start_cap``          0: a new policy starts at its   (components replace the
+                           component's spread              policies)
     ``merge_radius``       1: drop duplicate policies      0 (never)
     ``auxiliary``          ``"auto"``                      ``"fresh"`` (Algorithm 8)
     ``settle``             1: a warm-started clustering    ``None``: every clustering runs
@@ -129,6 +135,23 @@ class DipoleOptions:
             share of the trials since every policy first retired, in (0, 1); restarts
             (scouts) take the rest. A woken policy runs on to its next threshold, so the
             share taken can exceed it (see mechanisms.retirement.Waking).
+        refine_gate: a wake for a gain to show takes the retired policies whose best
+            kept return is within this fraction of the returns' range of the best one's, in
+            [0, 1] (1: every one); those further below are woken once these show no gain
+            left. The best optima are refined first: on a landscape of many local optima
+            (CEC 2013's Shubert), waking all of them a level at a time spent the wakes'
+            trials on the local ones.
+        wake_while_active: a wake may start while policies found after the first
+            convergence are active (they take turns as ``max_sampled`` says); False: only
+            once none is. Where new policies keep being found (with ``start_cap``), wakes
+            that wait for none to be active hardly come.
+        start_cap: a new policy (or hill-valley candidate) starts exploring no wider than
+            this fraction of its distance to the nearest policy, both on Σ_start's scale
+            (0: its component's spread, up to Σ_start's); see
+            mechanisms.matching.capped_start. For landscapes whose optima are all equally
+            good: with ``start_cap=0.25, wake_while_active=True`` more of CEC 2013's Vincent
+            optima are found, but on a landscape of many local optima (Shubert) the new
+            policies stay on the local ones (docs: Niching).
         merge_radius: drop a policy within this many exploration stds of another (0: never).
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
             draws, exact too, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
@@ -164,6 +187,9 @@ class DipoleOptions:
     retire_spread: float = 1e-4
     refine: float = 0.1
     refine_share: float = 0.2
+    refine_gate: float = 0.05
+    wake_while_active: bool = False
+    start_cap: float = 0.0
     merge_radius: float = 1.0
     auxiliary: str = "auto"
 
@@ -237,12 +263,17 @@ PAPER: dict[str, Any] = dict(
 
 
 # The options that act only through mechanisms PAPER turns off: with PAPER's values, a
-# restart needs retirement (``restarts``), a wake needs ``refine`` (``refine_share``), and
-# the rest need the hill-valley test; set alone they change nothing or are refused. The
-# command line's ``algo=dipole_paper`` leaves them out.
+# restart needs retirement (``restarts``), a wake needs ``refine`` (``refine_share``,
+# ``refine_gate``, ``wake_while_active``), a new policy between clusterings needs
+# ``matching="overlap"`` (``start_cap``), and the rest need the hill-valley test; set alone
+# they change nothing or are refused. The command line's ``algo=dipole_paper`` leaves them
+# out.
 PAPER_INERT: tuple[str, ...] = (
     "restarts",
     "refine_share",
+    "refine_gate",
+    "wake_while_active",
+    "start_cap",
     "pair_points",
     "accept_unjudged",
     "unjudged_share",
@@ -340,6 +371,9 @@ _CHECKS = {
     "retire_spread": _unit_interval,
     "refine": _fraction,
     "refine_share": _floor,
+    "refine_gate": _unit_interval,
+    "wake_while_active": check_flag,
+    "start_cap": _non_negative,
     "merge_radius": _non_negative,
     "auxiliary": _choice("auto", "fresh", "reuse"),
 }

@@ -104,6 +104,10 @@ def options(rng: random.Random) -> tuple[str, dict]:
         changes["coverage_from"] = rng.choice([None, None, 30, 300, 2000])
         if changes["coverage_from"] and not changes["accept_unjudged"]:
             changes["unjudged_share"] = rng.choice([None, 0.5])
+    if changes:  # (drawn last, as above)
+        changes["refine_gate"] = rng.choice([0.0, 0.05, 1.0])
+        changes["wake_while_active"] = rng.choice([True, False])
+        changes["start_cap"] = rng.choice([0.0, 1e-3, 0.25, 10.0])
     return variant, changes
 
 

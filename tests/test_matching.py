@@ -1,12 +1,14 @@
 """Matching a clustering's components to the policies (dipole_torch.mechanisms.matching)."""
 
+import pytest
 import torch
 from test_optimizer import started_dipole, two_optima
 
 from dipole_torch import Dipole
 from dipole_torch.archive import NO_POLICY
 from dipole_torch.dp.state import DPMixtureState
-from dipole_torch.mechanisms.matching import adopt_components, match_by_overlap
+from dipole_torch.gaussian import mahalanobis
+from dipole_torch.mechanisms.matching import adopt_components, capped_start, match_by_overlap
 
 F64 = torch.float64
 
@@ -125,3 +127,50 @@ def test_a_lone_policy_without_scouts_runs_without_clusterings():
         opt.tell(theta, _sphere(theta))
     assert opt.iteration >= 4 * opt.cluster_every and fits == []
     assert float(opt.best()[1]) > -1e-3  # and it converges all the same
+
+
+def test_a_new_policy_starts_no_wider_than_a_quarter_of_its_distance_to_the_nearest():
+    # Σ_start = diag(4, 1): distances and spreads on its scale.
+    opt = Dipole(torch.zeros(2, dtype=F64), torch.tensor([2.0, 1.0], dtype=F64),
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    opt.policy_set.reset(
+        torch.tensor([[0.0, 0.0], [8.0, 0.0]], dtype=F64),
+        torch.eye(2, dtype=F64).expand(2, 2, 2).clone(),
+    )
+    sigma = opt.sigma_start
+    # A component 2 of Σ_start's stds from policy 0 (1 along θ2, scale 1), one far away, one
+    # on policy 0's mean; each at Σ_start's shape and spread, then one 1e-3 as wide.
+    means = torch.tensor([[0.0, 2.0], [-40.0, 0.0], [0.0, 0.0], [0.0, 2.0]], dtype=F64)
+    covariances = torch.stack([sigma, sigma, sigma, 1e-6 * sigma])
+    capped = capped_start(opt, means, covariances, 0.25)
+    spread = torch.linalg.solve(sigma, capped).diagonal(dim1=-2, dim2=-1).mean(-1)
+    assert spread[0].item() == pytest.approx((0.25 * 2.0) ** 2)  # capped: std 0.5 of 2
+    assert torch.equal(capped[1], sigma)  # 20 stds from policy 0: under the cap
+    assert torch.equal(capped[3], covariances[3])  # narrower than the cap: kept
+    assert 0 < spread[2].item() <= 1e-29  # on a policy's mean: retires at once, still PD
+    assert bool((torch.linalg.eigvalsh(capped[2]) > 0).all())
+    assert torch.allclose(capped[0] / spread[0], sigma)  # Σ_start's shape kept
+    assert torch.equal(capped_start(opt, means, covariances, 0.0), covariances)
+
+
+def test_the_cap_holds_for_the_policies_a_clustering_starts():
+    # On two_optima with start_cap=0.25, every policy started after the first clustering
+    # explores at most a quarter of the way to the nearest policy there was.
+    g = torch.Generator().manual_seed(1)
+    opt = Dipole(torch.zeros(2, dtype=F64), 2.0, generator=g, start_cap=0.25)
+    chol = torch.linalg.cholesky(opt.sigma_start)
+    started = 0
+    while opt.trials < 400:
+        before, next_id = opt.policy_means.clone(), opt.policy_set.next_id
+        clustered = opt.dp_state is not None  # (the first clustering adopts its components)
+        theta = opt.ask()
+        opt.tell(theta, two_optima(theta))
+        new = opt.policy_set.ids >= next_id
+        if not clustered or not bool(new.any()):
+            continue
+        means, covariances = opt.policy_means[new], opt.policy_covariances[new]
+        distance = mahalanobis(chol, (before[None] - means[:, None])).amin(-1)
+        spread = torch.linalg.solve(opt.sigma_start, covariances).diagonal(dim1=-2, dim2=-1)
+        assert bool((spread.mean(-1) <= (0.25 * distance).square() * (1 + 1e-9)).all())
+        started += int(new.sum())
+    assert started > 0

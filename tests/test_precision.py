@@ -81,12 +81,14 @@ def test_without_waking_the_peak_stays_where_retirement_left_it():
 
 
 # ---------------------------------------------------------------------------- the mechanism
-def retired(stds, returns, refinements, ids_handed=None):
-    """A started 1-D Dipole whose policies are replaced by retired ones at 0, 1, 2, …: each
-    with two kept samples whose returns are ``returns[k]`` (best, worst), exploration std
-    ``stds[k]``, woken ``refinements[k]`` times; the run converged first at trial 100 of
-    200."""
-    opt = Dipole(torch.zeros(1, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
+def retired(stds, returns, refinements, ids_handed=None, **changes):
+    """A started 1-D Dipole (options ``changes``) whose policies are replaced by retired ones
+    at 0, 1, 2, …: each with two kept samples whose returns are ``returns[k]`` (best,
+    worst), exploration std ``stds[k]``, woken ``refinements[k]`` times; the run converged
+    first at trial 100 of 200, and the returns told span [−1, 1]."""
+    opt = Dipole(
+        torch.zeros(1, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0), **changes
+    )
     theta = opt.ask()
     opt.tell(theta, -theta[:, 0].abs())
     k = len(stds)
@@ -106,8 +108,10 @@ def retired(stds, returns, refinements, ids_handed=None):
 
 
 def test_the_coarsest_policies_with_a_gain_to_show_are_woken_first():
+    # (Without the gate, refine_gate=1: every policy with a gain to show is a candidate.)
     opt = retired(stds=[1e-4, 1e-5, 1e-4, 1e-4], refinements=[0, 1, 0, 0],
-                  returns=[(0.9, 0.8), (1.0, 0.9), (0.95, 0.95 - 1e-12), (0.5, 0.4)])  # fmt: skip
+                  returns=[(0.9, 0.8), (1.0, 0.9), (0.95, 0.95 - 1e-12), (0.5, 0.4)],
+                  refine_gate=1.0)  # fmt: skip
     opt.retirement.wake(opt)
     # Policy 2's returns spread 1e-12 of the range: nothing to show; policy 1 went one
     # level further already.
@@ -115,6 +119,36 @@ def test_the_coarsest_policies_with_a_gain_to_show_are_woken_first():
     assert opt.policy_set.refinements.tolist() == [1, 1, 0, 1]
     threshold = opt.retirement.waking.thresholds(opt, opt.options.retire_std)
     assert threshold.tolist() == pytest.approx([1e-4, 1e-4, 1e-3, 1e-4])
+
+
+def test_the_policies_near_the_best_return_are_woken_first():
+    # refine_gate=0.05 of the range [−1, 1]: within 0.1 of the best with a gain to show.
+    opt = retired(stds=[1e-4] * 4, refinements=[0, 1, 0, 0],
+                  returns=[(0.8, 0.7), (1.0, 0.9), (0.93, 0.9), (0.5, 0.4)])  # fmt: skip
+    opt.retirement.wake(opt)
+    assert opt.active.tolist() == [False, False, True, False]  # the fewest wakes among them
+    # Once those near the best show no gain left, the ones below take their turn.
+    opt = retired(stds=[1e-4] * 4, refinements=[0, 1, 0, 0],
+                  returns=[(0.8, 0.7), (1.0, 1.0 - 1e-12), (0.93, 0.93), (0.5, 0.4)])  # fmt: skip
+    opt.retirement.wake(opt)
+    assert opt.active.tolist() == [True, False, False, False]
+
+
+def test_a_wake_starts_beside_the_policies_found_since():
+    returns = [(1.0, 0.9), (0.95, 0.9), (0.2, 0.1)]
+    for while_active in (True, False):
+        opt = retired(stds=[1e-4] * 3, refinements=[0, 0, 0], returns=returns,
+                      wake_while_active=while_active)  # fmt: skip
+        opt.policy_set.active = torch.tensor([False, False, True])  # found after convergence
+        opt.retirement.wake(opt)
+        woken = [True, True, True] if while_active else [False, False, True]
+        assert opt.active.tolist() == woken, while_active
+    # One wake at a time: none starts while a woken policy is still active.
+    opt = retired(stds=[1e-4] * 3, refinements=[0, 0, 1], returns=returns)
+    opt.policy_set.active = torch.tensor([False, False, True])
+    opt.retirement.wake(opt)
+    assert opt.active.tolist() == [False, False, True]
+    assert opt.policy_set.refinements.tolist() == [0, 0, 1]
 
 
 def test_woken_policies_keep_to_their_share_of_the_trials():

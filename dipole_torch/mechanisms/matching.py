@@ -26,6 +26,8 @@ import torch
 from torch import Tensor
 
 from dipole_torch.dp.state import DPMixtureState
+from dipole_torch.gaussian import mahalanobis
+from dipole_torch.mechanisms.exploration import MIN_RELATIVE_STD
 from dipole_torch.policy_set import PolicyField
 from dipole_torch.power import importance_rows
 
@@ -36,6 +38,7 @@ __all__ = [
     "OverlapMatching",
     "ReplaceMatching",
     "adopt_components",
+    "capped_start",
     "match_by_overlap",
     "policy_and_scout_rows",
 ]
@@ -115,7 +118,15 @@ class ReplaceMatching:
 
 class OverlapMatching:
     """The default: components matched to the policies they continue; the rest become new
-    policies or hill-valley candidates."""
+    policies or hill-valley candidates, each starting no wider than ``start_cap`` times its
+    distance to the nearest policy (``capped_start``).
+
+    Args:
+        start_cap: the cap's fraction of that distance (0: no cap).
+    """
+
+    def __init__(self, start_cap: float = 0.0):
+        self.start_cap = float(start_cap)
 
     def register(self, search: Dipole) -> None:
         """Nothing to keep per policy."""
@@ -207,6 +218,8 @@ class OverlapMatching:
             covariance = search.exploration.starting_covariance(
                 search, state.covariances[c, :d, :d]
             )
+            if self.start_cap > 0:
+                covariance = capped_start(search, mean[None], covariance[None], self.start_cap)[0]
             if vet:
                 # Its best sample (the first best, as argmax), to be compared with the
                 # nearest policy's; its samples leave the data meanwhile.
@@ -231,6 +244,32 @@ class OverlapMatching:
         archive.owner = torch.tensor(owner, dtype=torch.long, device=search.device)
         archive.keep(torch.tensor(kept, dtype=torch.long, device=search.device))
         keep_importance_sets(search)
+
+
+def capped_start(search: Dipole, means: Tensor, covariances: Tensor, fraction: float) -> Tensor:
+    """``[F, D, D]`` new policies' starting ``covariances`` (``[F, D, D]``, at ``means [F,
+    D]``), each scaled down where wider to a spread tr(Σ_start⁻¹ Σ)/D of (fraction · d)²,
+    d the Σ_start-whitened distance from its mean to the nearest policy mean: its std on
+    Σ_start's axes at most ``fraction`` of the way to its neighbour.
+
+    A component of a few scouts takes its spread from the scouts around it, up to Σ_start's;
+    near another policy that spread reaches across the valley between them, so the new
+    policy climbs the neighbour's hill and is later merged or dropped as its duplicate,
+    having taken the trials a new optimum needed (docs: Niching). Unchanged without
+    policies, or with ``fraction`` 0. A mean on a policy's own gets a spread of
+    ``MIN_RELATIVE_STD``² (still positive definite): it retires at once.
+    """
+    others = search.policy_means
+    if fraction <= 0 or others.shape[0] == 0:
+        return covariances
+    chol = torch.linalg.cholesky(search.sigma_start)
+    diff = (others[None] - means[:, None]).to(chol.dtype)  # [F, K, D]
+    distance = mahalanobis(chol, diff).amin(-1)  # [F]
+    whitened = torch.linalg.solve(search.sigma_start, covariances.to(chol.dtype))
+    spread = whitened.diagonal(dim1=-2, dim2=-1).mean(-1)  # [F]
+    cap = (fraction * distance).square().clamp_min(MIN_RELATIVE_STD**2)
+    scale = torch.where(spread > cap, cap / spread, 1.0)
+    return covariances * scale[:, None, None].to(covariances.dtype)
 
 
 def policy_and_scout_rows(owner: Tensor, clustered: Tensor) -> Tensor:

@@ -6,12 +6,13 @@ merging of duplicates, and the restart of a policy whose samples straddle two hi
   or once its M kept returns spread less than its other threshold, at first
   ``retire_spread`` times the range of every return told; it stays among the policies, and
   its trials go to the others.
-* Waking (``refine``, ``refine_share``; ``Waking``): once no policy is active, the
-  retired ones at the coarsest thresholds are sampled again, each with both thresholds times
-  ``refine`` (one more decade with 0.1), when the trials they have taken are within
-  ``refine_share`` of the trials after the first convergence; otherwise the run restarts
-  (scouts). A converged policy is then not frozen for good: its precision keeps growing
-  while trials remain.
+* Waking (``refine``, ``refine_share``, ``refine_gate``, ``wake_while_active``;
+  ``Waking``): once every policy has retired, the retired ones near the best return at the
+  coarsest thresholds are sampled again, each with both thresholds times ``refine`` (one
+  more decade with 0.1), when the trials they have taken are within ``refine_share`` of the
+  trials after the first convergence — beside the policies found since, or once none is
+  active; otherwise the run restarts (scouts). A converged policy is then not frozen for
+  good: its precision keeps growing while trials remain.
 * Merging (``merge_radius``): an active policy closer than ``merge_radius`` exploration stds
   to another (both ways) or to a retired one, and to no third policy, is a duplicate and is
   dropped (one whose exploration covers two or more is left to the hill-valley probes).
@@ -143,16 +144,22 @@ class Waking(NoWaking):
 
     A policy retires once its exploration std is below ``retire_std · refine**n`` of
     Σ_start's, or its M kept returns spread less than ``retire_spread · refine**n`` of the
-    range of every return told, n (field ``refinements``) the times it was woken. When no
-    policy is active (every one retired, no candidate accepted), retired policies are woken,
-    n + 1 each, and sampled again with the exploration they retired with (the success rule
-    goes on shrinking it):
+    range of every return told, n (field ``refinements``) the times it was woken. Once
+    every policy has retired for the first time, and while no woken policy is active,
+    retired policies are woken, n + 1 each, and sampled again with the exploration they
+    retired with (the success rule goes on shrinking it):
 
     * **A gain to show**: the policies whose M kept returns spread at least
-      ``VISIBLE_GAIN`` of the range of every return told, those with the fewest wakes
-      (every optimum one level further before any goes two), while the woken policies have
-      taken less than ``share`` of the trials since every policy first retired.
-    * **Barren restarts**: otherwise the best retired policy (highest kept return), whatever
+      ``VISIBLE_GAIN`` of the range of every return told, and whose best kept return is
+      within ``gate`` of that range of the best such policy's, those with the fewest wakes
+      (every optimum near the best one level further before any goes two), while the woken
+      policies have taken less than ``share`` of the trials since every policy first
+      retired. With ``while_active``, such a wake starts even while policies found since are
+      active (they share the trials as ``max_sampled`` says); without it, only once none is.
+      The gate orders the wakes, best optima first: a policy further below is woken once
+      those near the best show no gain left.
+    * **Barren restarts**: with no policy active, otherwise the best retired policy (highest
+      kept return), whatever
       its returns show, while the woken policies have taken less than ``share`` of the
       trials of restarts and woken policies since the last new policy. A narrow peak on a
       broad hill shows no gain until the exploration reaches its scale; when the restarts
@@ -181,11 +188,23 @@ class Waking(NoWaking):
             docs' niching page says why.
         returns: the range of the returns told (the retirement's), the scale of a visible
             gain.
+        gate: the fraction of that range below the best candidate's return within which
+            a policy is woken for a gain to show, in [0, 1] (1: every one).
+        while_active: wake policies with a gain to show while others are active.
     """
 
-    def __init__(self, refine: float, share: float, returns: ReturnRange):
+    def __init__(
+        self,
+        refine: float,
+        share: float,
+        returns: ReturnRange,
+        gate: float = 1.0,
+        while_active: bool = False,
+    ):
         self.refine = float(refine)
         self.share = float(share)
+        self.gate = float(gate)
+        self.while_active = bool(while_active)
         self.converged_at = -1  # trials when every policy was first retired (-1: not yet)
         self.refine_trials = 0  # samples of woken policies since then
         # Since the last new policy: trials of restarts (asks with no policy active) and
@@ -242,16 +261,28 @@ class Waking(NoWaking):
         ``VISIBLE_GAIN`` of the told returns' range."""
         return _spread(search) >= self.returns.fraction(VISIBLE_GAIN)
 
+    def near_best(self, search: PolicySearch, candidates: Tensor) -> Tensor:
+        """``[K]`` the ``candidates [K]`` (bool) whose best kept return is within ``gate`` of
+        the told returns' range of the best candidate's."""
+        best = torch.where(candidates, search.policy_best_rewards, -math.inf)
+        return candidates & (best >= best.max() - self.returns.fraction(self.gate))
+
     def wake(self, search: PolicySearch) -> None:
-        """With no policy active: wake retired policies as the class docstring says."""
-        if search.policy_set.any_active() or search.num_policies == 0:
-            return
+        """Wake retired policies as the class docstring says."""
         policies = search.policy_set
-        if self.converged_at < 0:
-            self.converged_at = search.trials  # the first convergence: restart first
-            self.known_ids = policies.next_id
+        if search.num_policies == 0:
             return
-        if policies.next_id > self.known_ids:  # a new policy since: the restarts paid
+        busy = policies.any_active()
+        if self.converged_at < 0:
+            if not busy:
+                self.converged_at = search.trials  # the first convergence: restart first
+                self.known_ids = policies.next_id
+            return
+        if busy and not self.while_active:
+            return
+        if bool((policies.active & (policies.refinements > 0)).any()):
+            return  # a wake under way
+        if not busy and policies.next_id > self.known_ids:  # a new policy: the restarts paid
             self.known_ids = policies.next_id
             self.barren_restart_trials = self.barren_refine_trials = 0
         wakeable = ~policies.active & self.refinable(search)
@@ -260,9 +291,10 @@ class Waking(NoWaking):
         shared = self.refine_trials < self.share * (search.trials - self.converged_at)
         visible = wakeable & self.visible_gain(search)
         if shared and bool(visible.any()):
+            visible = self.near_best(search, visible)
             fewest = policies.refinements[visible].min()
             woken = visible & (policies.refinements == fewest)
-        elif barren and bool(wakeable.any()):
+        elif not busy and barren and bool(wakeable.any()):
             # The best one only: the restarts find nothing, the best solution can be better.
             best = torch.where(wakeable, search.policy_best_rewards, -math.inf)
             woken = torch.zeros_like(wakeable)
@@ -280,7 +312,7 @@ class Waking(NoWaking):
 
     def load_state_dict(self, state: dict) -> None:
         # (A checkpoint from before waking: fresh.)
-        fresh = Waking(self.refine, self.share, self.returns)
+        fresh = Waking(self.refine, self.share, self.returns, self.gate, self.while_active)
         for key in self.KEYS:
             value = state.get(f"waking_{key}", getattr(fresh, key))
             setattr(self, key, type(getattr(fresh, key))(value))
@@ -300,6 +332,9 @@ class Retirement:
         refine: the threshold's factor at each wake (0: retired policies stay retired).
         refine_share: the share of the trials after the first convergence within which
             a wake may start (``Waking``).
+        refine_gate: the wakes' gate below the best return, a fraction of the returns'
+            range (``Waking``).
+        wake_while_active: a wake may start while other policies are active (``Waking``).
     """
 
     def __init__(
@@ -310,6 +345,8 @@ class Retirement:
         refine: float,
         refine_share: float,
         retire_spread: float = 0.0,
+        refine_gate: float = 1.0,
+        wake_while_active: bool = False,
     ):
         self.retire_std = float(retire_std)
         self.retire_spread = float(retire_spread)
@@ -317,7 +354,11 @@ class Retirement:
         self.restarts = bool(restart_straddlers)
         self.returns = ReturnRange()
         wakes = self.retire_std > 0 and refine > 0
-        self.waking = Waking(refine, refine_share, self.returns) if wakes else NoWaking()
+        self.waking = (
+            Waking(refine, refine_share, self.returns, refine_gate, wake_while_active)
+            if wakes
+            else NoWaking()
+        )
         self._in_valley: tuple[bool, ...] | None = None  # within one tell: see observe
 
     def register(self, search: PolicySearch) -> None:

@@ -83,6 +83,11 @@ ADDED_KEYS = {
     "algo.optimizer.retire_spread": 0.0,
     # Runs from before the coverage options could start at a trial.
     "algo.optimizer.coverage_from": None,
+    # Runs from before the wakes went to the policies near the best return first (and
+    # before the opt-in wakes beside active policies and cap on a new policy's exploration).
+    "algo.optimizer.refine_gate": 1.0,
+    "algo.optimizer.wake_while_active": False,
+    "algo.optimizer.start_cap": 0.0,
 }
 # Keys an algorithm's config no longer has, whose values changed nothing in its runs: a
 # checkpoint that has them resumes without them (``algo=dipole_paper`` listed the options
