@@ -52,7 +52,7 @@ class DipoleOptions:
                            1e-4 of the returns' range
     ``refine``             0.1: wake retired policies      0 (never)
                            for a 10× finer threshold
-                           once every one has retired
+                           once none is active
     ``refine_gate``        0.05: the policies near the     (no wakes)
                            best return are woken first
     ``wake_while_active``  no: wakes once no policy is     (no wakes)

@@ -7,12 +7,12 @@ merging of duplicates, and the restart of a policy whose samples straddle two hi
   ``retire_spread`` times the range of every return told; it stays among the policies, and
   its trials go to the others.
 * Waking (``refine``, ``refine_share``, ``refine_gate``, ``wake_while_active``;
-  ``Waking``): once every policy has retired, the retired ones near the best return at the
+  ``Waking``): once no policy is active (with ``wake_while_active``, also beside the
+  policies found after every one had retired), the retired ones near the best return at the
   coarsest thresholds are sampled again, each with both thresholds times ``refine`` (one
   more decade with 0.1), when the trials they have taken are within ``refine_share`` of the
-  trials after the first convergence — beside the policies found since, or once none is
-  active; otherwise the run restarts (scouts). A converged policy is then not frozen for
-  good: its precision keeps growing while trials remain.
+  trials after the first convergence; otherwise the run restarts (scouts). A converged
+  policy is then not frozen for good: its precision keeps growing while trials remain.
 * Merging (``merge_radius``): an active policy closer than ``merge_radius`` exploration stds
   to another (both ways) or to a retired one, and to no third policy, is a duplicate and is
   dropped (one whose exploration covers two or more is left to the hill-valley probes).
@@ -158,12 +158,11 @@ class Waking(NoWaking):
       active (they share the trials as ``max_sampled`` says); without it, only once none is.
       The gate orders the wakes, best optima first: a policy further below is woken once
       those near the best show no gain left.
-    * **Barren restarts**: with no policy active, otherwise the best retired policy (highest
-      kept return), whatever
-      its returns show, while the woken policies have taken less than ``share`` of the
-      trials of restarts and woken policies since the last new policy. A narrow peak on a
-      broad hill shows no gain until the exploration reaches its scale; when the restarts
-      find nothing, the best solution is the one to make better.
+    * **Barren restarts**: with no policy active, otherwise the best retired policy
+      (highest kept return), whatever its returns show, while the woken policies have taken
+      less than ``share`` of the trials of restarts and woken policies since the last new
+      policy. A narrow peak on a broad hill shows no gain until the exploration reaches its
+      scale; when the restarts find nothing, the best solution is the one to make better.
 
     Otherwise the run restarts as before (the next asks are scouts from the start
     distribution); the first time every policy has retired, it restarts first. The woken
