@@ -190,12 +190,16 @@ def test_a_new_policy_ends_the_barren_count():
     assert (waking.barren_restart_trials, waking.barren_refine_trials) == (0, 0)
 
 
-def test_a_run_resumed_after_wakes_makes_the_same_draws():
+@pytest.mark.parametrize(
+    "changes", [{}, {"start_cap": 0.25, "wake_while_active": True}], ids=["default", "opt-in"]
+)
+def test_a_run_resumed_after_wakes_makes_the_same_draws(changes):
     c = centre(2)
     f = cone(c)
 
     def build():
-        return Dipole(torch.zeros(2, dtype=F64), 2.5, generator=torch.Generator().manual_seed(4))
+        g = torch.Generator().manual_seed(4)
+        return Dipole(torch.zeros(2, dtype=F64), 2.5, generator=g, **changes)
 
     def learn(opt, trials):
         while opt.trials < trials:
