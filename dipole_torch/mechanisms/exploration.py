@@ -31,6 +31,7 @@ __all__ = [
     "SuccessRuleParameters",
     "bounded_condition",
     "make_exploration",
+    "start_spread",
 ]
 
 
@@ -177,9 +178,15 @@ class SuccessRule:
         A component of a few points in D dimensions has a badly conditioned posterior
         covariance; the rank-one update needs hundreds of samples to unlearn it, which
         slowed the policies' convergence."""
-        whitened = torch.linalg.solve(search.sigma_start, covariances)
-        spread = whitened.diagonal(dim1=-2, dim2=-1).mean(-1).clamp(max=1.0)
+        spread = start_spread(search, covariances).clamp(max=1.0)
         return spread[..., None, None] * search.sigma_start
+
+
+def start_spread(search: PolicySearch, covariances: Tensor) -> Tensor:
+    """``[...]`` the spread of ``covariances [..., D, D]`` on Σ_start's scale,
+    tr(Σ_start⁻¹ Σ)/D (1 for Σ_start itself)."""
+    whitened = torch.linalg.solve(search.sigma_start, covariances)
+    return whitened.diagonal(dim1=-2, dim2=-1).mean(-1)
 
 
 # The smallest exploration std the success rule keeps, relative to Σ_start's (its largest

@@ -27,7 +27,7 @@ from torch import Tensor
 
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import mahalanobis
-from dipole_torch.mechanisms.exploration import MIN_RELATIVE_STD
+from dipole_torch.mechanisms.exploration import MIN_RELATIVE_STD, start_spread
 from dipole_torch.policy_set import PolicyField
 from dipole_torch.power import importance_rows
 
@@ -265,8 +265,7 @@ def capped_start(search: Dipole, means: Tensor, covariances: Tensor, fraction: f
     chol = torch.linalg.cholesky(search.sigma_start)
     diff = (others[None] - means[:, None]).to(chol.dtype)  # [F, K, D]
     distance = mahalanobis(chol, diff).amin(-1)  # [F]
-    whitened = torch.linalg.solve(search.sigma_start, covariances.to(chol.dtype))
-    spread = whitened.diagonal(dim1=-2, dim2=-1).mean(-1)  # [F]
+    spread = start_spread(search, covariances.to(chol.dtype))  # [F]
     cap = (fraction * distance).square().clamp_min(MIN_RELATIVE_STD**2)
     scale = torch.where(spread > cap, cap / spread, 1.0)
     return covariances * scale[:, None, None].to(covariances.dtype)

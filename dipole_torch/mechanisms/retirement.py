@@ -277,10 +277,10 @@ class Waking(NoWaking):
                 self.converged_at = search.trials  # the first convergence: restart first
                 self.known_ids = policies.next_id
             return
-        if busy and not self.while_active:
-            return
-        if bool((policies.active & (policies.refinements > 0)).any()):
-            return  # a wake under way
+        if busy and (
+            not self.while_active or bool((policies.active & self.refining(search)).any())
+        ):
+            return  # wakes wait for no policy to be active, or a wake is under way
         if not busy and policies.next_id > self.known_ids:  # a new policy: the restarts paid
             self.known_ids = policies.next_id
             self.barren_restart_trials = self.barren_refine_trials = 0
