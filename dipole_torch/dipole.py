@@ -124,7 +124,7 @@ class Dipole(PolicySearch):
         self.auxiliary = "reuse" if reuse else "fresh"
         # The mechanisms, one object each ("off" is an object too).
         self.importance = make_importance(options.importance)
-        self.exploration = make_exploration(options.exploration, d)
+        self.exploration = make_exploration(options.exploration, d, options.success_target)
         self.scouting = Scouting(
             options.explore, options.max_sampled, options.restarts, options.unjudged_share
         )

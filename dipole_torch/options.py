@@ -31,6 +31,8 @@ class DipoleOptions:
     ``exploration``        ``"success"``: the success      ``"clustering"``: the θ-block of
                            rule scales each policy's       the policy's DP component's
                            covariance                      posterior covariance
+    ``success_target``     0.25: the success rule's        (no success rule)
+                           target rate
     ``matching``           ``"overlap"``: a component      ``"replace"``: every clustering's
                            continues the policy owning     components replace the policies
                            most of its samples
@@ -92,6 +94,11 @@ class DipoleOptions:
         prior_df: ν0 of the inverse-Wishart prior, > D + 2; None: D + 3.
         importance: "policy" (each policy's own best M) or "global" (the best K·M overall).
         exploration: "success" (success rule per policy) or "clustering" (DP posterior).
+        success_target: the success rule's target rate p_t, in (0, 1): a policy's exploration
+            shrinks while fewer of its samples than this beat its best kept one. 0.25, above
+            Igel et al.'s 2/11 for the (1+1)-CMA-ES: a policy's mean is eq. 7's average of
+            its best samples, not the best one, and with the higher target the policies
+            converge in fewer trials (see mechanisms.exploration.SuccessRule).
         matching: "overlap" (a component continues the policy owning most of its samples; the
             others become new policies) or "replace" (the components replace the policies).
         explore: scouts from N(θ0, Σ_start) per policy sample, in [0, 1].
@@ -173,6 +180,7 @@ class DipoleOptions:
     prior_df: float | None = None
     importance: str = "policy"
     exploration: str = "success"
+    success_target: float = 0.25
     matching: str = "overlap"
     explore: float = 0.05
     restarts: str = "box"
@@ -262,13 +270,15 @@ PAPER: dict[str, Any] = dict(
 )
 
 
-# The options that act only through mechanisms PAPER turns off: with PAPER's values, a
+# The options that act only through mechanisms PAPER turns off: with PAPER's values, the
+# success rule's target needs ``exploration="success"`` (``success_target``), a
 # restart needs retirement (``restarts``), a wake needs ``refine`` (``refine_share``,
 # ``refine_gate``, ``wake_while_active``), a new policy between clusterings needs
 # ``matching="overlap"`` (``start_cap``), and the rest need the hill-valley test; set alone
 # they change nothing or are refused. The command line's ``algo=dipole_paper`` leaves them
 # out.
 PAPER_INERT: tuple[str, ...] = (
+    "success_target",
     "restarts",
     "refine_share",
     "refine_gate",
@@ -357,6 +367,7 @@ _CHECKS = {
     "prior_df": _optional_real,
     "importance": _choice("policy", "global"),
     "exploration": _choice("success", "clustering"),
+    "success_target": _floor,
     "matching": _choice("overlap", "replace"),
     "explore": _unit_interval,
     "restarts": _choice("box", "start"),

@@ -108,6 +108,7 @@ def options(rng: random.Random) -> tuple[str, dict]:
         changes["refine_gate"] = rng.choice([0.0, 0.05, 1.0])
         changes["wake_while_active"] = rng.choice([True, False])
         changes["start_cap"] = rng.choice([0.0, 1e-3, 0.25, 10.0])
+        changes["success_target"] = rng.choice([0.25, 2.0 / 11.0, 0.02, 0.6])
     return variant, changes
 
 

@@ -17,7 +17,7 @@ import pytest
 import torch
 from torch.distributions import MultivariateNormal
 
-from dipole_torch import Dipole
+from dipole_torch import Dipole, DipoleOptions
 from dipole_torch.dp.conditionals import draw_mean, posterior_point_estimate
 from dipole_torch.dp.neal8 import neal8_sweep
 from dipole_torch.dp.reward_weights import RewardRegression
@@ -38,14 +38,19 @@ def bimodal(theta: torch.Tensor) -> torch.Tensor:
     return -((theta - 1.0).pow(2).sum(-1)) * ((theta + 1.0).pow(2).sum(-1))
 
 
-def success_rule_dipole(sigma_start: torch.Tensor) -> Dipole:
-    """A default Dipole (success-rule exploration) with no scouts, probes, retirement or
-    merging, after its first tell: one row per policy at the next asks, and nothing but the
-    success rule changes a covariance before the next clustering."""
+# The success rule's target rate: the library's default, and Igel et al.'s 2/11.
+TARGETS = (DipoleOptions().success_target, 2.0 / 11.0)
+
+
+def success_rule_dipole(sigma_start: torch.Tensor, target: float) -> Dipole:
+    """A default Dipole (success-rule exploration, target rate ``target``) with no scouts,
+    probes, retirement or merging, after its first tell: one row per policy at the next asks,
+    and nothing but the success rule changes a covariance before the next clustering."""
     opt = Dipole(
         torch.zeros(2, dtype=F64),
         sigma_start,
         generator=torch.Generator().manual_seed(0),
+        success_target=target,
         explore=0.0,
         hill_valley=False,
         retire_std=0.0,
@@ -61,9 +66,10 @@ def success_rule_dipole(sigma_start: torch.Tensor) -> Dipole:
 def success_rule_by_hand(opt: Dipole, theta, rewards, owner):
     """The success rule of Igel, Suttorp & Hansen (2006), one told row at a time in Python
     scalars: ``(paths, success, covariances, capped, successes)`` after the tell. Σ is their
-    σ²C in one matrix, so the path is their σ·p_c: it scales with σ's factor."""
+    σ²C in one matrix, so the path is their σ·p_c: it scales with σ's factor. The target
+    rate p_t is the optimizer's ``success_target`` (Igel et al.'s is 2/11)."""
     dim = opt.dim
-    c_p, p_t = 1.0 / 12.0, 2.0 / 11.0
+    c_p, p_t = 1.0 / 12.0, opt.options.success_target
     c_c, c_cov, damping = 2.0 / (dim + 2.0), 2.0 / (dim * dim + 6.0), 1.0 + dim / 2.0
     paths = opt.policy_set.paths.clone()
     success = opt.policy_set.success.clone()
@@ -88,14 +94,16 @@ def success_rule_by_hand(opt: Dipole, theta, rewards, owner):
     return paths, success, covs, capped, successes
 
 
-def test_a_tie_with_the_best_kept_return_is_no_success():
-    opt = success_rule_dipole(torch.eye(2, dtype=F64))
+@pytest.mark.parametrize("target", TARGETS)
+def test_a_tie_with_the_best_kept_return_is_no_success(target):
+    opt = success_rule_dipole(torch.eye(2, dtype=F64), target)
+    assert torch.equal(opt.policy_set.success, torch.full_like(opt.policy_set.success, target))
     theta = opt.ask()
     owner = opt.asked_owner.clone()
     best = opt.policy_best_rewards[owner]
     before = opt.policy_covariances.clone()
     opt.tell(theta, best)  # every sample ties its policy's best kept return
-    p_t = 2.0 / 11.0
+    p_t = target
     expected_rate = torch.full_like(opt.policy_set.success, (1 - 1 / 12) * p_t)
     torch.testing.assert_close(opt.policy_set.success, expected_rate, rtol=1e-14, atol=0)
     assert torch.equal(opt.policy_set.paths, torch.zeros_like(opt.policy_set.paths))
@@ -105,10 +113,11 @@ def test_a_tie_with_the_best_kept_return_is_no_success():
     torch.testing.assert_close(opt.policy_covariances, before * factor, rtol=1e-12, atol=0)
 
 
-def test_the_success_rule_exact_values_tell_by_tell():
+@pytest.mark.parametrize("target", TARGETS)
+def test_the_success_rule_exact_values_tell_by_tell(target):
     # Σ_start with unequal axes, so that the cap acts per axis.
     sigma_start = torch.diag(torch.tensor([1.0, 0.36], dtype=F64))
-    opt = success_rule_dipole(sigma_start)
+    opt = success_rule_dipole(sigma_start, target)
     assert opt.num_policies >= 3
     capped_any, uncapped_success = False, False
     # Iterations 1-4 precede the next clustering (every M = 5 iterations).

@@ -453,13 +453,14 @@ def test_a_run_whose_chain_drew_a_nearly_singular_prior_resumes_from_its_checkpo
     """A long successful run without regularisation or retirement: its policies converge
     on the optimum, their covariances shrink, and the DP prior that H's Gibbs update draws
     from them is closer to singular than a prior a user may pass (correlation eigenvalue
-    below 1e-10, here by trial ~760). Its checkpoint must load and continue the same run."""
+    below 1e-10, here by trial ~760). Its checkpoint must load and continue the same run.
+    (The run with Igel et al.'s success target 2/11, the default when it was found.)"""
     from dipole_torch.prior import NormalInverseWishartPrior
     from dipole_torch.validation import check_well_conditioned
 
     def make(seed):
         return Dipole(torch.full((3,), -0.2, dtype=F64), torch.eye(3, dtype=F64),
-                      regularization=0.0, retire_std=0.0,
+                      regularization=0.0, retire_std=0.0, success_target=2.0 / 11.0,
                       generator=torch.Generator().manual_seed(seed))  # fmt: skip
 
     opt = make(0)

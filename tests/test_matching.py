@@ -42,7 +42,7 @@ def test_adopted_components_become_the_policies_the_best_max_policies_kept():
     assert components.tolist() == [0, 1]  # component 2 (best return -9) dropped
     assert opt.num_policies == 2 and torch.equal(opt.policy_means, state.means[:2, :2])
     assert opt.owner.tolist() == [0, 0, 1]  # its sample went with it
-    assert opt.active.all() and (opt.policy_set.success == 2.0 / 11.0).all()
+    assert opt.active.all() and (opt.policy_set.success == opt.options.success_target).all()
 
 
 def _match_by_overlap_on_tensors(labels, old, num_components, policies):
@@ -156,7 +156,7 @@ def test_a_new_policy_starts_no_wider_than_a_quarter_of_its_distance_to_the_near
 def test_the_cap_holds_for_the_policies_a_clustering_starts():
     # On two_optima with start_cap=0.25, every policy started after the first clustering
     # explores at most a quarter of the way to the nearest policy there was.
-    g = torch.Generator().manual_seed(1)
+    g = torch.Generator().manual_seed(2)  # (a seed whose run starts one after the first)
     opt = Dipole(torch.zeros(2, dtype=F64), 2.0, generator=g, start_cap=0.25)
     chol = torch.linalg.cholesky(opt.sigma_start)
     started = 0

@@ -125,6 +125,8 @@ def test_a_combination_that_cannot_run_is_refused_naming_the_conflict():
         ({"refine": -0.1}, ValueError, r"refine must lie in \[0, 1\), got -0.1"),
         ({"refine_share": 0.0}, ValueError, r"refine_share must lie in \(0, 1\)"),
         ({"refine_gate": 1.5}, ValueError, r"refine_gate must lie in \[0, 1\], got 1.5"),
+        ({"success_target": 1.0}, ValueError, r"success_target must lie in \(0, 1\), got 1.0"),
+        ({"success_target": 0.0}, ValueError, r"success_target must lie in \(0, 1\)"),
         ({"refine_gate": math.nan}, ValueError, r"refine_gate must lie in \[0, 1\]"),
         ({"wake_while_active": "yes"}, ValueError, "wake_while_active must be True or False"),
         ({"start_cap": -0.25}, ValueError, "start_cap must be non-negative and finite"),
@@ -172,6 +174,7 @@ INERT_VALUES = {
     "restarts": "start",
     "refine_share": 0.6,
     "refine_gate": 1.0,
+    "success_target": 2.0 / 11.0,
     "wake_while_active": True,
     "start_cap": 0.25,
     "pair_points": 4,
@@ -224,6 +227,7 @@ EDGES = {
         retire_std=0.5, refine=0.9, merge_radius=10.0, pair_points=5
     ),  # fmt: skip
     "retirement on any spread, by the std never": dict(retire_spread=1.0, retire_std=1e-300),
+    "a success rule that almost never shrinks": dict(success_target=1e-3),
 }
 
 
@@ -247,3 +251,18 @@ def test_options_at_the_edges_of_their_ranges_run_long(importance, edge):
     assert torch.isfinite(opt.policy_means).all()
     assert torch.isfinite(opt.policy_covariances).all()
     assert opt.best()[1] > 0.5  # above the first batch's (about 0.1 in 5-D)
+
+
+@pytest.mark.parametrize("target", [1e-6, 0.999999])
+def test_a_success_target_at_either_end_runs_long(target):
+    """A success rule whose exploration grows at almost every sample, or shrinks at almost
+    every one (a poor search, yet a run): 600 trials in 5-D stay finite, every exploration
+    covariance positive definite and within Σ_start's scale."""
+    opt = Dipole(torch.zeros(5), torch.eye(5), bounds=(-5.0, 5.0), success_target=target,
+                 generator=torch.Generator().manual_seed(2))  # fmt: skip
+    while opt.trials < 600:
+        theta = opt.ask()
+        opt.tell(theta, two_optima(theta[:, :2]))  # the first two axes hold the optima
+    assert torch.isfinite(opt.policy_means).all()
+    assert bool((torch.linalg.eigvalsh(opt.policy_covariances) > 0).all())
+    assert bool((opt.relative_std() <= 1.0 + 1e-12).all())

@@ -88,6 +88,8 @@ ADDED_KEYS = {
     "algo.optimizer.refine_gate": 1.0,
     "algo.optimizer.wake_while_active": False,
     "algo.optimizer.start_cap": 0.0,
+    # Runs from before the success rule's target rate was an option (Igel et al.'s 2/11).
+    "algo.optimizer.success_target": 2.0 / 11.0,
 }
 # Keys an algorithm's config no longer has, whose values changed nothing in its runs: a
 # checkpoint that has them resumes without them (``algo=dipole_paper`` listed the options
