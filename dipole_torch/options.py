@@ -95,10 +95,10 @@ class DipoleOptions:
         importance: "policy" (each policy's own best M) or "global" (the best K·M overall).
         exploration: "success" (success rule per policy) or "clustering" (DP posterior).
         success_target: the success rule's target rate p_t, in (0, 1): a policy's exploration
-            shrinks while fewer of its samples than this beat its best kept one. 0.25, above
-            Igel et al.'s 2/11 for the (1+1)-CMA-ES: a policy's mean is eq. 7's average of
-            its best samples, not the best one, and with the higher target the policies
-            converge in fewer trials (see mechanisms.exploration.SuccessRule).
+            shrinks while a smaller share of its samples than this beat its best kept one.
+            0.25, above Igel et al.'s 2/11 for the (1+1)-CMA-ES: a policy's mean is eq. 7's
+            average of its best samples, not the best one, and with the higher target the
+            policies converge in fewer trials (see mechanisms.exploration.SuccessRule).
         matching: "overlap" (a component continues the policy owning most of its samples; the
             others become new policies) or "replace" (the components replace the policies).
         explore: scouts from N(θ0, Σ_start) per policy sample, in [0, 1].
