@@ -66,17 +66,13 @@ class SuccessRuleParameters:
 
     Args:
         dim: D.
-        target: p_t (Igel et al.'s 2/11 unless given; ``Dipole`` gives ``success_target``).
+        target_success: p_t, the success rate at which the covariance keeps its scale (the
+            1/5th rule's (1+1) refinement: 2/11 in Igel et al., the default here; ``Dipole``
+            gives its ``success_target`` option).
     """
 
     dim: int
-    target: float = IGEL_TARGET_SUCCESS
-
-    @property
-    def target_success(self) -> float:
-        """p_t: the success rate at which the covariance keeps its scale (the 1/5th rule's
-        (1+1) refinement: 2/11 in Igel et al.)."""
-        return self.target
+    target_success: float = IGEL_TARGET_SUCCESS
 
     @property
     def smoothing(self) -> float:

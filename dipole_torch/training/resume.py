@@ -22,6 +22,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from dipole_torch.checkpoint import CheckpointError, atomic_save, load_checkpoint
+from dipole_torch.mechanisms.exploration import IGEL_TARGET_SUCCESS
 from dipole_torch.options import PAPER_INERT
 
 __all__ = [
@@ -89,7 +90,7 @@ ADDED_KEYS = {
     "algo.optimizer.wake_while_active": False,
     "algo.optimizer.start_cap": 0.0,
     # Runs from before the success rule's target rate was an option (Igel et al.'s 2/11).
-    "algo.optimizer.success_target": 2.0 / 11.0,
+    "algo.optimizer.success_target": IGEL_TARGET_SUCCESS,
 }
 # Keys an algorithm's config no longer has, whose values changed nothing in its runs: a
 # checkpoint that has them resumes without them (``algo=dipole_paper`` listed the options
