@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -83,10 +82,6 @@ def importance_sets(
         index ``[K, M]`` sample index of each slot (−1 for an empty slot, best first);
         valid ``[K, M]`` bool mask of filled slots.
     """
-    if owner.device.type == "cpu" and rewards.device.type == "cpu":
-        sets = _importance_sets_numpy(owner, rewards, num_policies, size)
-        if sets is not None:
-            return sets
     n = owner.shape[0]
     # Group by owner, best reward first inside each group (two stable sorts).
     by_reward = torch.sort(rewards, descending=True, stable=True).indices
@@ -100,43 +95,6 @@ def importance_sets(
     index = torch.full((num_policies, size), -1, dtype=torch.long, device=owner.device)
     index[owner[order[in_set]], rank[in_set]] = order[in_set]
     return keep, index, index >= 0
-
-
-def _importance_sets_numpy(
-    owner: Tensor, rewards: Tensor, num_policies: int, size: int
-) -> tuple[Tensor, Tensor, Tensor] | None:
-    """``importance_sets`` on CPU with numpy: the same two stable sorts and integer
-    bookkeeping (exact), in a fraction of the ~20 small-tensor ops' overhead. ``None`` for
-    inputs whose handling is left to the torch path (empty, NaN, owners outside
-    ``[0, num_policies)``), so errors and NaN ordering stay torch's."""
-    sets = _importance_sets_arrays(owner.numpy(), rewards.detach().numpy(), num_policies, size)
-    if sets is None:
-        return None
-    keep, index = sets
-    return torch.from_numpy(keep), torch.from_numpy(index), torch.from_numpy(index >= 0)
-
-
-def _importance_sets_arrays(
-    own: np.ndarray, returns: np.ndarray, num_policies: int, size: int
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The numpy core of ``importance_sets``: ``(keep [N], index [K, M])``, or ``None`` for
-    the inputs left to the torch path."""
-    n = own.shape[0]
-    if n == 0 or np.isnan(returns).any() or own.min() < 0 or own.max() >= num_policies:
-        return None
-    # Descending stable sort = ascending stable sort of the negated returns (exact; ±0 tie).
-    by_reward = np.argsort(-returns, kind="stable")
-    order = by_reward[np.argsort(own[by_reward], kind="stable")]
-    counts = np.bincount(own, minlength=num_policies)
-    starts = np.cumsum(counts) - counts
-    rank = np.arange(n) - starts[own[order]]
-    in_set = rank < size
-    chosen = order[in_set]
-    keep = np.zeros(n, dtype=bool)
-    keep[chosen] = True
-    index = np.full((num_policies, size), -1, dtype=np.int64)
-    index[own[chosen], rank[in_set]] = chosen
-    return keep, index
 
 
 def importance_rows(
@@ -158,10 +116,6 @@ def importance_rows(
         row, or row 0 when no row is owned, to be weighted 0);
         valid ``[K, M]`` bool mask of filled slots.
     """
-    if owner.device.type == "cpu" and rewards.device.type == "cpu":
-        rows = _importance_rows_numpy(owner, rewards, num_policies, size)
-        if rows is not None:
-            return rows
     owned = (owner >= 0).nonzero().squeeze(-1)
     keep, index, valid = importance_sets(owner[owned], rewards[owned], num_policies, size)
     kept = owner < 0
@@ -169,26 +123,6 @@ def importance_rows(
     # With no owned row (every kept sample a scout's), the empty slots point at row 0.
     rows = owned[index.clamp_min(0)] if owned.numel() else torch.zeros_like(index)
     return kept.nonzero().squeeze(-1), rows, valid
-
-
-def _importance_rows_numpy(
-    owner: Tensor, rewards: Tensor, num_policies: int, size: int
-) -> tuple[Tensor, Tensor, Tensor] | None:
-    """``importance_rows`` on CPU with numpy (exact integer bookkeeping, as
-    ``_importance_sets_numpy``); ``None`` for the inputs left to the torch path."""
-    own = owner.numpy()
-    owned = np.flatnonzero(own >= 0)
-    sets = _importance_sets_arrays(own[owned], rewards.detach().numpy()[owned], num_policies, size)
-    if sets is None:
-        return None
-    keep, index = sets
-    kept = own < 0
-    kept[owned[keep]] = True
-    return (
-        torch.from_numpy(np.flatnonzero(kept)),
-        torch.from_numpy(owned[np.maximum(index, 0)]),
-        torch.from_numpy(index >= 0),
-    )
 
 
 class PolicyImportance:

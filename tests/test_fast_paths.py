@@ -4,9 +4,8 @@ import pytest
 import torch
 from torch.distributions import MultivariateNormal
 
-import dipole_torch.power as power_module
 import dipole_torch.sampling as sampling
-from dipole_torch import NormalInverseWishartPrior, importance_sets
+from dipole_torch import NormalInverseWishartPrior
 from dipole_torch.sampling import draw, draw_gaussian, draw_with_uniforms
 
 F64 = torch.float64
@@ -60,36 +59,6 @@ def test_prior_memos_follow_their_fields():
     assert torch.equal(prior._scale_inverse(), 0.5 * (expected + expected.T))
 
 
-@pytest.mark.parametrize("seed", range(40))
-def test_importance_sets_numpy_equals_torch(seed):
-    g = torch.Generator().manual_seed(seed)
-    n = int(torch.randint(1, 60, (1,), generator=g))
-    k = int(torch.randint(1, 6, (1,), generator=g))
-    size = int(torch.randint(1, 8, (1,), generator=g))
-    owner = torch.randint(0, k, (n,), generator=g)
-    # Few distinct values (ties), ±0 among them.
-    rewards = torch.randint(-3, 4, (n,), generator=g).to(F64) * 0.5
-    rewards[rewards == 0] = torch.tensor([0.0, -0.0], dtype=F64)[torch.arange(n)[rewards == 0] % 2]
-    if seed % 2:
-        rewards = rewards + 1e-3 * torch.randn(n, generator=g, dtype=F64)
-    fast = power_module._importance_sets_numpy(owner, rewards, k, size)
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(power_module, "_importance_sets_numpy", lambda *args: None)
-        slow = importance_sets(owner, rewards, k, size)
-    assert fast is not None
-    for a, b in zip(fast, slow, strict=True):
-        assert a.dtype == b.dtype and torch.equal(a, b)
-
-
-def test_importance_sets_odd_inputs_take_the_torch_path():
-    nan = torch.tensor([1.0, float("nan"), 0.5], dtype=F64)
-    assert power_module._importance_sets_numpy(torch.zeros(3, dtype=torch.long), nan, 1, 2) is None
-    empty = power_module._importance_sets_numpy(torch.zeros(0, dtype=torch.long), nan[:0], 2, 3)
-    assert empty is None
-    keep, index, valid = importance_sets(torch.zeros(0, dtype=torch.long), nan[:0], 2, 3)
-    assert keep.shape == (0,) and not valid.any()
-
-
 def test_memos_under_inference_mode():
     """Inference tensors have no version counter: the memos step aside, same numbers."""
     from dipole_torch import DPSampler
@@ -122,23 +91,3 @@ def test_draw_gaussian_equals_draw_of_the_distribution(monkeypatch, shape, d, lo
     slow = forked(monkeypatch, draw, mvn, shape, slow_gen)
     assert fast.shape == slow.shape and torch.equal(fast, slow)
     assert torch.equal(fast_gen.get_state(), slow_gen.get_state())
-
-
-@pytest.mark.parametrize("seed", range(20))
-def test_importance_rows_numpy_equals_torch(seed):
-    # An archive with samples of no policy (owner -1) among the policies' own.
-    g = torch.Generator().manual_seed(seed)
-    n = int(torch.randint(1, 40, (1,), generator=g))
-    k = int(torch.randint(1, 5, (1,), generator=g))
-    size = int(torch.randint(1, 6, (1,), generator=g))
-    owner = torch.randint(-1, k, (n,), generator=g)
-    owner[int(torch.randint(0, n, (1,), generator=g))] = 0  # some row is owned
-    rewards = torch.randint(-3, 4, (n,), generator=g).to(F64) * 0.5  # ties
-    fast = power_module._importance_rows_numpy(owner, rewards, k, size)
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(power_module, "_importance_rows_numpy", lambda *args: None)
-        patch.setattr(power_module, "_importance_sets_numpy", lambda *args: None)
-        slow = power_module.importance_rows(owner, rewards, k, size)
-    assert fast is not None
-    for a, b in zip(fast, slow, strict=True):
-        assert a.dtype == b.dtype and torch.equal(a, b)

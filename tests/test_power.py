@@ -3,7 +3,7 @@ import torch
 from test_optimizer import started_dipole, two_optima
 
 from dipole_torch import Power, importance_sets, power_update
-from dipole_torch.power import PolicyImportance
+from dipole_torch.power import PolicyImportance, importance_rows
 
 F64 = torch.float64
 
@@ -33,6 +33,62 @@ def test_importance_sets_pick_each_policys_best():
     assert index.tolist() == [[6, 2], [1, 4], [5, -1]]
     assert valid.tolist() == [[True, True], [True, True], [True, False]]
     assert keep.tolist() == [False, True, True, False, True, True, True]
+
+
+def _sets_by_hand(owner, rewards, k, size):
+    """Each policy's best ``size`` samples, ties in archive order (Python's stable sort)."""
+    index = [[-1] * size for _ in range(k)]
+    for policy in range(k):
+        own = [i for i in range(len(owner)) if owner[i] == policy]
+        for slot, i in enumerate(sorted(own, key=lambda i: -rewards[i])[:size]):
+            index[policy][slot] = i
+    return index
+
+
+def _random_archive(seed, no_policy):
+    g = torch.Generator().manual_seed(seed)
+    n = int(torch.randint(0 if not no_policy else 1, 50, (1,), generator=g))
+    k = int(torch.randint(1, 6, (1,), generator=g))
+    size = int(torch.randint(1, 7, (1,), generator=g))
+    owner = torch.randint(-1 if no_policy else 0, k, (n,), generator=g)
+    # Few distinct values (ties), ±0 among them, or distinct ones.
+    rewards = torch.randint(-3, 4, (n,), generator=g).to(F64) * 0.5
+    zeros = rewards == 0
+    rewards[zeros] = torch.tensor([0.0, -0.0], dtype=F64)[torch.arange(n)[zeros] % 2]
+    if seed % 2:
+        rewards = rewards + 1e-3 * torch.randn(n, generator=g, dtype=F64)
+    return owner, rewards, k, size
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_importance_sets_match_a_sort_by_hand(seed):
+    owner, rewards, k, size = _random_archive(seed, no_policy=False)
+    keep, index, valid = importance_sets(owner, rewards, k, size)
+    expected = _sets_by_hand(owner.tolist(), rewards.tolist(), k, size)
+    assert index.tolist() == expected
+    assert torch.equal(valid, index >= 0)
+    chosen = {i for row in expected for i in row if i >= 0}
+    assert keep.tolist() == [i in chosen for i in range(owner.shape[0])]
+
+
+def test_importance_sets_of_an_empty_archive():
+    keep, index, valid = importance_sets(torch.zeros(0, dtype=torch.long), torch.zeros(0), 2, 3)
+    assert keep.shape == (0,) and index.tolist() == [[-1] * 3] * 2 and not valid.any()
+    kept, rows, valid = importance_rows(torch.full((2,), -1), torch.zeros(2, dtype=F64), 2, 3)
+    assert kept.tolist() == [0, 1] and rows.tolist() == [[0] * 3] * 2 and not valid.any()
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_importance_rows_keep_samples_of_no_policy(seed):
+    owner, rewards, k, size = _random_archive(seed, no_policy=True)
+    kept, rows, valid = importance_rows(owner, rewards, k, size)
+    expected = _sets_by_hand(owner.tolist(), rewards.tolist(), k, size)
+    owned = [i for i in range(owner.shape[0]) if owner[i] >= 0]
+    empty = owned[0] if owned else 0  # an empty slot points at the first owned row
+    assert rows.tolist() == [[i if i >= 0 else empty for i in row] for row in expected]
+    assert valid.tolist() == [[i >= 0 for i in row] for row in expected]
+    chosen = {i for row in expected for i in row if i >= 0}
+    assert kept.tolist() == [i for i in range(owner.shape[0]) if owner[i] < 0 or i in chosen]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
