@@ -1,8 +1,9 @@
 """Whole-run optimizer CPU at equal trials, evaluations excluded: DIPOLE against IPOP-CMA-ES
-and NMMSO, its anchors, on bench_multioptima's landscapes, measured in the same run.
+and NMMSO, its anchors, on bench_multioptima's landscapes, measured in the same run; and
+against the library's PoWER, the same ask/tell with one policy.
 
     python benchmarks/bench_whole_run.py [--dims 2 10] [--ks 2 4 8] [--seeds 2] \\
-        [--trials 2000] [--methods DIPOLE "DIPOLE (paper)" IPOP-CMA-ES NMMSO]
+        [--trials 2000] [--methods DIPOLE "DIPOLE (paper)" PoWER IPOP-CMA-ES NMMSO]
 
 Each method runs on each case (D, k, seed) of ``benchmarks/bench_multioptima.py`` with the
 setup that script gives it (DIPOLE's defaults told the box; pycma's IPOP-CMA-ES with its
@@ -16,8 +17,12 @@ initialisation) are spent in a warm-up run before the table.
 
 Printed per D: each method's optimizer CPU summed over the cases, the trials it used, its
 CPU per trial, the Gibbs sweeps its clusterings ran (DIPOLE's variants; counted, so the same
-on every machine), and DIPOLE's (and DIPOLE (paper)'s) ratio to IPOP-CMA-ES's and to NMMSO's
-summed CPU.
+on every machine), and each method's ratio to IPOP-CMA-ES's, NMMSO's and PoWER's summed CPU.
+PoWER (``bench_multioptima``'s setup: the paper's global importance sets, a decaying
+exploration) runs through the same ``ask``/``tell`` as DIPOLE (the told rows' checks, the
+archive, the importance sets, eq. 7, the seeded draws) with one policy and none of DIPOLE's
+mechanisms (clusterings, success rule, retirement, scouts, probes): DIPOLE's ratio to it is
+what those mechanisms add to a trial, its ratio to IPOP-CMA-ES what the ask/tell itself costs.
 """
 
 from __future__ import annotations
@@ -35,8 +40,8 @@ from bench_multioptima import OPT_IN, RUNNERS, case_seeds, make_landscape  # noq
 
 from dipole_torch.dp.sampler import DPSampler  # noqa: E402
 
-METHODS = ("DIPOLE", "DIPOLE (paper)", "IPOP-CMA-ES", "NMMSO")
-ANCHORS = ("IPOP-CMA-ES", "NMMSO")
+METHODS = ("DIPOLE", "DIPOLE (paper)", "PoWER", "IPOP-CMA-ES", "NMMSO")
+ANCHORS = ("IPOP-CMA-ES", "NMMSO", "PoWER")
 
 
 class TimedLandscape:

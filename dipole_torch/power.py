@@ -81,20 +81,19 @@ def importance_sets(
         keep ``[N]`` bool mask of the samples in some importance set (≤ K·M of them);
         index ``[K, M]`` sample index of each slot (−1 for an empty slot, best first);
         valid ``[K, M]`` bool mask of filled slots.
+
+    Ties go to the earlier sample. On the CPU the sets are chosen in Python scalars
+    (``_host_sets``), elsewhere in tensor operations (``_tensor_sets``): the same sets.
     """
-    n = owner.shape[0]
-    # Group by owner, best reward first inside each group (two stable sorts).
-    by_reward = torch.sort(rewards, descending=True, stable=True).indices
-    order = by_reward[torch.sort(owner[by_reward], stable=True).indices]
-    counts = torch.bincount(owner, minlength=num_policies)
-    starts = torch.cumsum(counts, 0) - counts
-    rank = torch.arange(n, device=owner.device) - starts[owner[order]]
-    in_set = rank < size
-    keep = torch.zeros(n, dtype=torch.bool, device=owner.device)
-    keep[order[in_set]] = True
-    index = torch.full((num_policies, size), -1, dtype=torch.long, device=owner.device)
-    index[owner[order[in_set]], rank[in_set]] = order[in_set]
-    return keep, index, index >= 0
+    if owner.device.type != "cpu":
+        return _tensor_sets(owner, rewards, num_policies, size)
+    sets = _host_sets(owner.tolist(), rewards.tolist(), num_policies, size)
+    chosen = [False] * owner.shape[0]
+    for rows in sets:
+        for row in rows:
+            chosen[row] = True
+    index = torch.tensor(_padded(sets, size, -1), dtype=torch.long).reshape(num_policies, size)
+    return torch.tensor(chosen, dtype=torch.bool), index, index >= 0
 
 
 def importance_rows(
@@ -116,8 +115,67 @@ def importance_rows(
         row, or row 0 when no row is owned, to be weighted 0);
         valid ``[K, M]`` bool mask of filled slots.
     """
+    if owner.device.type != "cpu":
+        return _tensor_rows(owner, rewards, num_policies, size)
+    owners = owner.tolist()
+    sets = _host_sets(owners, rewards.tolist(), num_policies, size)
+    kept = [policy < 0 for policy in owners]
+    for rows in sets:
+        for row in rows:
+            kept[row] = True
+    # With no owned row (every kept sample a scout's), the empty slots point at row 0.
+    empty = next((row for row, policy in enumerate(owners) if policy >= 0), 0)
+    index = torch.tensor(_padded(sets, size, empty), dtype=torch.long).reshape(num_policies, size)
+    filled = [[True] * len(rows) for rows in sets]
+    valid = torch.tensor(_padded(filled, size, False), dtype=torch.bool)
+    kept_rows = torch.tensor([row for row, keep in enumerate(kept) if keep], dtype=torch.long)
+    return kept_rows, index, valid.reshape(num_policies, size)
+
+
+def _host_sets(owner: list[int], rewards: list[float], num_policies: int, size: int) -> list:
+    """The rows of each policy's importance set, best first (ties: the earlier row first,
+    Python's sort being stable), as K lists of at most ``size`` rows; rows of owner < 0
+    belong to none.
+
+    At the archive's sizes (tens of rows) this is a few microseconds of Python where the
+    tensor path makes some forty calls, each cold in a run (see the speed page)."""
+    groups: list[list[int]] = [[] for _ in range(num_policies)]
+    for row, policy in enumerate(owner):
+        if policy >= 0:
+            groups[policy].append(row)
+    return [sorted(rows, key=lambda row: -rewards[row])[:size] for rows in groups]
+
+
+def _padded(rows: list[list], size: int, fill) -> list:
+    """``rows`` flattened, each row padded to ``size`` with ``fill``."""
+    return [item for row in rows for item in (*row, *[fill] * (size - len(row)))]
+
+
+def _tensor_sets(
+    owner: Tensor, rewards: Tensor, num_policies: int, size: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``importance_sets`` in tensor operations, on any device (no host sync)."""
+    n = owner.shape[0]
+    # Group by owner, best reward first inside each group (two stable sorts).
+    by_reward = torch.sort(rewards, descending=True, stable=True).indices
+    order = by_reward[torch.sort(owner[by_reward], stable=True).indices]
+    counts = torch.bincount(owner, minlength=num_policies)
+    starts = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(n, device=owner.device) - starts[owner[order]]
+    in_set = rank < size
+    keep = torch.zeros(n, dtype=torch.bool, device=owner.device)
+    keep[order[in_set]] = True
+    index = torch.full((num_policies, size), -1, dtype=torch.long, device=owner.device)
+    index[owner[order[in_set]], rank[in_set]] = order[in_set]
+    return keep, index, index >= 0
+
+
+def _tensor_rows(
+    owner: Tensor, rewards: Tensor, num_policies: int, size: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``importance_rows`` in tensor operations, on any device."""
     owned = (owner >= 0).nonzero().squeeze(-1)
-    keep, index, valid = importance_sets(owner[owned], rewards[owned], num_policies, size)
+    keep, index, valid = _tensor_sets(owner[owned], rewards[owned], num_policies, size)
     kept = owner < 0
     kept[owned[keep]] = True
     # With no owned row (every kept sample a scout's), the empty slots point at row 0.

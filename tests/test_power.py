@@ -3,7 +3,7 @@ import torch
 from test_optimizer import started_dipole, two_optima
 
 from dipole_torch import Power, importance_sets, power_update
-from dipole_torch.power import PolicyImportance, importance_rows
+from dipole_torch.power import PolicyImportance, _tensor_rows, _tensor_sets, importance_rows
 
 F64 = torch.float64
 
@@ -26,10 +26,17 @@ def test_power_update_keeps_a_policy_without_samples():
     assert torch.equal(out, mean)
 
 
-def test_importance_sets_pick_each_policys_best():
+# Both paths of each function: the CPU's (Python scalars) and every other device's (tensor
+# operations, run here on the CPU).
+SETS = pytest.mark.parametrize("sets", [importance_sets, _tensor_sets], ids=["host", "tensor"])
+ROWS = pytest.mark.parametrize("rows_of", [importance_rows, _tensor_rows], ids=["host", "tensor"])
+
+
+@SETS
+def test_importance_sets_pick_each_policys_best(sets):
     owner = torch.tensor([0, 1, 0, 0, 1, 2, 0])
     rewards = torch.tensor([1.0, 5.0, 3.0, 2.0, 4.0, 0.0, 7.0])
-    keep, index, valid = importance_sets(owner, rewards, 3, 2)
+    keep, index, valid = sets(owner, rewards, 3, 2)
     assert index.tolist() == [[6, 2], [1, 4], [5, -1]]
     assert valid.tolist() == [[True, True], [True, True], [True, False]]
     assert keep.tolist() == [False, True, True, False, True, True, True]
@@ -60,10 +67,11 @@ def _random_archive(seed, no_policy):
     return owner, rewards, k, size
 
 
+@SETS
 @pytest.mark.parametrize("seed", range(30))
-def test_importance_sets_match_a_sort_by_hand(seed):
+def test_importance_sets_match_a_sort_by_hand(seed, sets):
     owner, rewards, k, size = _random_archive(seed, no_policy=False)
-    keep, index, valid = importance_sets(owner, rewards, k, size)
+    keep, index, valid = sets(owner, rewards, k, size)
     expected = _sets_by_hand(owner.tolist(), rewards.tolist(), k, size)
     assert index.tolist() == expected
     assert torch.equal(valid, index >= 0)
@@ -71,17 +79,22 @@ def test_importance_sets_match_a_sort_by_hand(seed):
     assert keep.tolist() == [i in chosen for i in range(owner.shape[0])]
 
 
-def test_importance_sets_of_an_empty_archive():
-    keep, index, valid = importance_sets(torch.zeros(0, dtype=torch.long), torch.zeros(0), 2, 3)
+@SETS
+@ROWS
+def test_importance_sets_of_an_empty_archive(sets, rows_of):
+    keep, index, valid = sets(torch.zeros(0, dtype=torch.long), torch.zeros(0), 2, 3)
     assert keep.shape == (0,) and index.tolist() == [[-1] * 3] * 2 and not valid.any()
-    kept, rows, valid = importance_rows(torch.full((2,), -1), torch.zeros(2, dtype=F64), 2, 3)
+    assert (keep.dtype, index.dtype, valid.dtype) == (torch.bool, torch.long, torch.bool)
+    kept, rows, valid = rows_of(torch.full((2,), -1), torch.zeros(2, dtype=F64), 2, 3)
     assert kept.tolist() == [0, 1] and rows.tolist() == [[0] * 3] * 2 and not valid.any()
 
 
+@ROWS
 @pytest.mark.parametrize("seed", range(30))
-def test_importance_rows_keep_samples_of_no_policy(seed):
+def test_importance_rows_keep_samples_of_no_policy(seed, rows_of):
     owner, rewards, k, size = _random_archive(seed, no_policy=True)
-    kept, rows, valid = importance_rows(owner, rewards, k, size)
+    kept, rows, valid = rows_of(owner, rewards, k, size)
+    assert (kept.dtype, rows.dtype, valid.dtype) == (torch.long, torch.long, torch.bool)
     expected = _sets_by_hand(owner.tolist(), rewards.tolist(), k, size)
     owned = [i for i in range(owner.shape[0]) if owner[i] >= 0]
     empty = owned[0] if owned else 0  # an empty slot points at the first owned row
