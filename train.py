@@ -133,10 +133,12 @@ def train(cfg: DictConfig) -> dict:
                     )
                     rows, last_batch_cut = cfg.trials - optimizer.trials, True
                 if cover_from is not None and optimizer.trials >= cover_from:
+                    cap = optimizer.options.coverage_max_policies
                     log.info(
                         f"from trial {optimizer.trials} on, DIPOLE covers alternatives "
                         f"(coverage_from={cover_from}): candidates the hill-valley probe "
                         "cannot judge become policies, and every active policy is sampled"
+                        + ("" if cap is None else f" (at most {cap} active)")
                     )
                     cover_from = None
                 theta = optimizer.ask(max_rows=rows)

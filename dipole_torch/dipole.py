@@ -122,6 +122,8 @@ class Dipole(PolicySearch):
             and self.device.type == "cpu"
         )
         self.auxiliary = "reuse" if reuse else "fresh"
+        # Active policies at most; ``coverage_max_policies`` from ``coverage_from`` on.
+        self.max_policies = options.max_policies
         # The mechanisms, one object each ("off" is an object too).
         self.importance = make_importance(options.importance)
         self.exploration = make_exploration(options.exploration, d, options.success_target)
@@ -194,16 +196,20 @@ class Dipole(PolicySearch):
 
     def _cover_from_trial(self) -> None:
         """With ``coverage_from``: for the batches asked from that trial on, the candidates
-        the probe cannot judge are accepted and every active policy is sampled; before it,
-        the options as set. Set from the trial count at each ask (and at load, so a resumed
-        run switches as it ran) and kept through the batch's tell: a run whose batches were
-        all asked before the trial is the run without the option, draw for draw."""
+        the probe cannot judge are accepted, every active policy is sampled and
+        ``coverage_max_policies`` caps the active ones; before it, the options as set. Set
+        from the trial count at each ask (and at load, so a resumed run switches as it ran)
+        and kept through the batch's tell: a run whose batches were all asked before the
+        trial is the run without the option, draw for draw."""
         start = self.options.coverage_from
         if start is None:
             return
         covering = self.trials >= start
         self.vetting.accept_unjudged = covering or self.options.accept_unjudged
         self.scouting.max_sampled = None if covering else self.options.max_sampled
+        cap = self.options.coverage_max_policies
+        self.max_policies = cap if covering and cap is not None else self.options.max_policies
+        self.vetting.max_policies = self.max_policies
 
     def _propose(self) -> tuple[Tensor, Tensor]:
         """Policy samples, then scouts, then hill-valley probes."""

@@ -21,54 +21,56 @@ class DipoleOptions:
     that cannot run together are refused there too, naming the conflict. ``replace(**changes)``
     gives a checked copy. ``paper`` is the paper's set.
 
-    =====================  ==============================  ===================================
-    option                 default                         the paper (``paper``)
-    =====================  ==============================  ===================================
-    ``reward_range``       ``None``: min–max of the kept   ``"positive"`` (returns used as
-                           returns (any units)             they are), or a fixed range
-    ``importance``         ``"policy"``: every policy      ``"global"``: the best K·M samples
-                           keeps its own best M            overall
-    ``exploration``        ``"success"``: the success      ``"clustering"``: the θ-block of
-                           rule scales each policy's       the policy's DP component's
-                           covariance                      posterior covariance
-    ``success_target``     0.25: the success rule's        (no success rule)
-                           target rate
-    ``matching``           ``"overlap"``: a component      ``"replace"``: every clustering's
-                           continues the policy owning     components replace the policies
-                           most of its samples
-    ``explore``            0.05 scouts per policy sample   0
-    ``hill_valley``        probe new and neighbouring      no
-                           policies
-    ``accept_unjudged``    no: a candidate the probe       no
-                           cannot judge is forgotten
-    ``unjudged_share``     ``None`` (with                  ``None``
-                           ``accept_unjudged``: no cap)
-    ``coverage_from``      ``None``: never                 ``None``
-    ``max_policies``       8 active policies at most       no limit
-    ``max_sampled``        4 policies sampled in an        no limit
-                           iteration (the others wait)
-    ``retire_std``         1e-3: stop sampling a           0 (never)
-                           converged policy
-    ``retire_spread``      1e-4: stop sampling a policy    0
-                           whose kept returns agree to
-                           1e-4 of the returns' range
-    ``refine``             0.1: wake retired policies      0 (never)
-                           for a 10× finer threshold
-                           once none is active
-    ``refine_gate``        0.05: the policies near the     (no wakes)
-                           best return are woken first
-    ``wake_while_active``  no: wakes once no policy is     (no wakes)
-                           active
-    ``start_cap``          0: a new policy starts at its   (components replace the
-                           component's spread              policies)
-    ``merge_radius``       1: drop duplicate policies      0 (never)
-    ``auxiliary``          ``"auto"``                      ``"fresh"`` (Algorithm 8)
-    ``settle``             1: a warm-started clustering    ``None``: every clustering runs
-                           ends once a sweep leaves its    its ``sweeps``
-                           partition unchanged
-    ``scout_sweeps``       1: a clustering of scouts       ``None`` (the paper has no
-                           alone runs one sweep            scouts)
-    =====================  ==============================  ===================================
+    =========================  ==============================  ===================================
+    option                     default                         the paper (``paper``)
+    =========================  ==============================  ===================================
+    ``reward_range``           ``None``: min–max of the kept   ``"positive"`` (returns used as
+                               returns (any units)             they are), or a fixed range
+    ``importance``             ``"policy"``: every policy      ``"global"``: the best K·M samples
+                               keeps its own best M            overall
+    ``exploration``            ``"success"``: the success      ``"clustering"``: the θ-block of
+                               rule scales each policy's       the policy's DP component's
+                               covariance                      posterior covariance
+    ``success_target``         0.25: the success rule's        (no success rule)
+                               target rate
+    ``matching``               ``"overlap"``: a component      ``"replace"``: every clustering's
+                               continues the policy owning     components replace the policies
+                               most of its samples
+    ``explore``                0.05 scouts per policy sample   0
+    ``hill_valley``            probe new and neighbouring      no
+                               policies
+    ``accept_unjudged``        no: a candidate the probe       no
+                               cannot judge is forgotten
+    ``unjudged_share``         ``None`` (with                  ``None``
+                               ``accept_unjudged``: no cap)
+    ``coverage_from``          ``None``: never                 ``None``
+    ``coverage_max_policies``  ``None``: ``max_policies``      ``None``
+                               from ``coverage_from`` on too
+    ``max_policies``           8 active policies at most       no limit
+    ``max_sampled``            4 policies sampled in an        no limit
+                               iteration (the others wait)
+    ``retire_std``             1e-3: stop sampling a           0 (never)
+                               converged policy
+    ``retire_spread``          1e-4: stop sampling a policy    0
+                               whose kept returns agree to
+                               1e-4 of the returns' range
+    ``refine``                 0.1: wake retired policies      0 (never)
+                               for a 10× finer threshold
+                               once none is active
+    ``refine_gate``            0.05: the policies near the     (no wakes)
+                               best return are woken first
+    ``wake_while_active``      no: wakes once no policy is     (no wakes)
+                               active
+    ``start_cap``              0: a new policy starts at its   (components replace the
+                               component's spread              policies)
+    ``merge_radius``           1: drop duplicate policies      0 (never)
+    ``auxiliary``              ``"auto"``                      ``"fresh"`` (Algorithm 8)
+    ``settle``                 1: a warm-started clustering    ``None``: every clustering runs
+                               ends once a sweep leaves its    its ``sweeps``
+                               partition unchanged
+    ``scout_sweeps``           1: a clustering of scouts       ``None`` (the paper has no
+                               alone runs one sweep            scouts)
+    =========================  ==============================  ===================================
 
     Attributes:
         alpha: DP concentration α > 0 (paper: 1).
@@ -126,6 +128,12 @@ class DipoleOptions:
             the run without it. Converge first, then cover: the policies held by then have
             had the trials to converge, and the new ones accepted after it take the rest
             (with ``unjudged_share``, at most that share of the policy samples).
+        coverage_max_policies: with ``coverage_from``, the active policies at most for the
+            batches asked from that trial on (None: ``max_policies`` throughout; without
+            ``coverage_from`` there is no such batch, and it changes nothing, so that
+            ``coverage_from=None`` alone turns a task's covering off). On a task where no
+            policy retires while it covers, the cap binds for good once reached, and the
+            alternatives found later wait for a place (docs: Precision and coverage).
         max_policies: active policies at most (None: no limit).
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
         retire_std: retire a policy once its exploration std is below this times Σ_start's
@@ -189,6 +197,7 @@ class DipoleOptions:
     accept_unjudged: bool = False
     unjudged_share: float | None = None
     coverage_from: int | None = None
+    coverage_max_policies: int | None = None
     max_policies: int | None = 8
     max_sampled: int | None = 4
     retire_std: float = 1e-3
@@ -288,6 +297,7 @@ PAPER_INERT: tuple[str, ...] = (
     "accept_unjudged",
     "unjudged_share",
     "coverage_from",
+    "coverage_max_policies",
 )
 
 
@@ -376,6 +386,7 @@ _CHECKS = {
     "accept_unjudged": check_flag,
     "unjudged_share": _optional_share,
     "coverage_from": _optional_count,
+    "coverage_max_policies": _optional_count,
     "max_policies": _optional_count,
     "max_sampled": _optional_count,
     "retire_std": _non_negative,

@@ -109,6 +109,7 @@ def options(rng: random.Random) -> tuple[str, dict]:
         changes["wake_while_active"] = rng.choice([True, False])
         changes["start_cap"] = rng.choice([0.0, 1e-3, 0.25, 10.0])
         changes["success_target"] = rng.choice([0.25, 2.0 / 11.0, 0.02, 0.6])
+        changes["coverage_max_policies"] = rng.choice([None, None, 1, 10, 40])
     return variant, changes
 
 

@@ -37,7 +37,7 @@ def test_adopted_components_become_the_policies_the_best_max_policies_kept():
     opt.archive.replace(y[:, :2].clone(), torch.tensor([-0.1, -0.2, -0.5, -9.0], dtype=F64),
                         torch.zeros(4, dtype=torch.long))  # fmt: skip
     state = DPMixtureState.from_labels(y, torch.tensor([0, 0, 1, 2]), opt.dp_state.prior)
-    opt.options = opt.options.replace(max_policies=2)
+    opt.max_policies = 2  # (the cap in force: `max_policies`, or `coverage_max_policies`)
     components = adopt_components(opt, state)
     assert components.tolist() == [0, 1]  # component 2 (best return -9) dropped
     assert opt.num_policies == 2 and torch.equal(opt.policy_means, state.means[:2, :2])

@@ -181,6 +181,7 @@ INERT_VALUES = {
     "accept_unjudged": True,
     "unjudged_share": 0.5,
     "coverage_from": 40,
+    "coverage_max_policies": 10,
 }
 
 

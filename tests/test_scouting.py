@@ -263,10 +263,61 @@ def test_a_run_whose_batches_were_all_asked_before_coverage_from_is_the_defaults
         assert torch.equal(plain.policy_means, later.policy_means), seed
 
 
+def test_coverage_max_policies_caps_the_active_policies_from_coverage_from_on():
+    """Before the trial the cap is ``max_policies`` (8); from it on as many policies as
+    ``coverage_max_policies`` may be active, and no more."""
+
+    def wavy(theta):  # 2-D, about 25 optima in the box: the covering phase finds more than 8
+        return torch.cos(3.0 * theta).sum(-1) - 0.02 * (theta**2).sum(-1)
+
+    def make(**changes):
+        return Dipole(
+            torch.zeros(2, dtype=DTYPE),
+            4.0 * torch.eye(2, dtype=DTYPE),
+            bounds=(-5.0, 5.0),
+            retire_std=0.0,  # (no policy retires: the cap binds)
+            generator=torch.Generator().manual_seed(0),
+            coverage_from=100,
+            **changes,
+        )
+
+    runs = {
+        cap: make(**({} if cap is None else {"coverage_max_policies": cap})) for cap in (None, 10)
+    }
+    most = dict.fromkeys(runs, 0)
+    for cap, opt in runs.items():
+        while opt.trials < 600:
+            if opt.trials < 100:
+                assert opt.max_policies == 8
+            theta = opt.ask()
+            opt.tell(theta, wavy(theta))
+            most[cap] = max(most[cap], sum(opt.policy_set.active_flags()))
+        assert opt.options.max_policies == 8  # the options as given stay the settings
+    assert most[None] == 8 and most[10] == 10
+    assert runs[10].max_policies == 10 and runs[10].vetting.max_policies == 10
+
+
+def test_before_coverage_max_policies_acts_the_run_is_the_coverage_from_run():
+    def make(**changes):
+        return build(4, coverage_from=200, **changes)
+
+    plain, capped = run_to(make(), 180), run_to(make(coverage_max_policies=3), 180)
+    assert torch.equal(plain.policy_means, capped.policy_means)
+    assert torch.equal(plain.ask(), capped.ask()) and capped.max_policies == 8
+
+
+def test_without_coverage_from_coverage_max_policies_changes_nothing():
+    """(``train.py task=viapoint algo.optimizer.coverage_from=null`` turns the task's
+    covering off, its cap with it.)"""
+    plain = run_to(build(4), 400)
+    capped = run_to(build(4, coverage_max_policies=1), 400)
+    assert torch.equal(plain.policy_means, capped.policy_means) and capped.max_policies == 8
+
+
 @pytest.mark.parametrize("saved_at", [150, 250])
 def test_a_run_with_coverage_from_resumes_as_it_ran_on_either_side_of_it(saved_at):
     def make(seed):
-        return build(4, seed=seed, coverage_from=200, unjudged_share=0.5)
+        return build(4, seed=seed, coverage_from=200, unjudged_share=0.5, coverage_max_policies=3)
 
     whole = run_to(make(0), saved_at)
     copy = make(7)
@@ -284,6 +335,10 @@ def test_a_run_with_coverage_from_resumes_as_it_ran_on_either_side_of_it(saved_a
         ({"coverage_from": 2.5}, "coverage_from must be a positive integer or None"),
         ({"coverage_from": 10, "hill_valley": False}, "coverage_from=10 needs hill_valley"),
         ({"unjudged_share": 0.5}, "needs accept_unjudged=True or coverage_from"),
+        (
+            {"coverage_from": 10, "coverage_max_policies": 0},
+            "coverage_max_policies must be a positive integer or None",
+        ),
     ],
 )
 def test_bad_coverage_from_values_are_refused_naming_them(changes, message):

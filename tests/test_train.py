@@ -210,7 +210,19 @@ def test_a_run_says_when_it_starts_covering(finished_run, tmp_path):
     said = re.findall(r"from trial (\d+) on, DIPOLE covers alternatives \(coverage_from=30\)",
                       (tmp_path / "train.log").read_text())  # fmt: skip
     assert len(said) == 1 and 30 <= int(said[0]) < 40, said  # at the first ask from trial 30
+    assert "active)" not in (tmp_path / "train.log").read_text()
     assert "covers alternatives" not in (finished_run / "train.log").read_text()
+    capped = tmp_path / "capped"
+    train(
+        "task=multimodal",
+        "trials=40",
+        "algo.optimizer.coverage_from=30",
+        "algo.optimizer.coverage_max_policies=10",
+        f"hydra.run.dir={capped}",
+    )
+    assert (
+        "every active policy is sampled (at most 10 active)" in (capped / "train.log").read_text()
+    )
 
 
 def test_multirun_over_seeds(tmp_path):
@@ -343,8 +355,8 @@ def test_the_coverage_preset_is_the_library_variant_with_three_options_changed()
 
 def test_the_viapoint_task_covers_from_its_default_budget_with_dipole_only():
     """``configs/task_algo/viapoint_dipole.yaml`` (Hydra's specializing pattern) sets
-    ``coverage_from=300`` for ``task=viapoint algo=dipole`` and for no other pair; an
-    override sets it back."""
+    ``coverage_from=300`` (with its cap of 10 active policies) for ``task=viapoint
+    algo=dipole`` and for no other pair; an override sets it back."""
     cfg = compose_config("task=viapoint")
     assert cfg.algo.name == "dipole" and cfg.algo.optimizer.coverage_from == 300
     # (It is the task's default budget, written in both files: they must move together.)
@@ -353,6 +365,11 @@ def test_the_viapoint_task_covers_from_its_default_budget_with_dipole_only():
         cfg.algo.optimizer, theta0=torch.zeros(2, dtype=torch.float64), sigma_start=1.0
     )
     assert opt.options.coverage_from == 300 and opt.options.unjudged_share is None
+    assert opt.options.coverage_max_policies == 10 and opt.options.max_policies == 8
+    # Turned off by coverage_from=null alone: the cap has nothing left to act on.
+    off = compose_config("task=viapoint", "algo.optimizer.coverage_from=null").algo.optimizer
+    opt = instantiate(off, theta0=torch.zeros(2, dtype=torch.float64), sigma_start=1.0)
+    assert opt.options.coverage_from is None and opt.max_policies == 8
     for overrides in (
         ["task=viapoint", "algo.optimizer.coverage_from=null"],
         ["task=viapoint", "algo=dipole_coverage"],
@@ -362,7 +379,10 @@ def test_the_viapoint_task_covers_from_its_default_budget_with_dipole_only():
         ["task=viapoint", "algo=dipole_paper"],
         ["task=viapoint", "algo=power"],  # (an option it does not have)
     ):
-        assert compose_config(*overrides).algo.optimizer.get("coverage_from") is None, overrides
+        optimizer = compose_config(*overrides).algo.optimizer
+        assert optimizer.get("coverage_from") is None, overrides
+        if overrides != ["task=viapoint", "algo.optimizer.coverage_from=null"]:
+            assert optimizer.get("coverage_max_policies") is None, overrides
 
 
 def test_each_default_is_stated_once_in_the_code():

@@ -60,7 +60,7 @@ def adopt_components(search: Dipole, state: DPMixtureState) -> Tensor:
     )
     search.archive.owner = state.labels.clone()
     kept = torch.ones(state.num_components, dtype=torch.bool, device=search.device)
-    max_policies = search.options.max_policies
+    max_policies = search.max_policies
     if max_policies is not None:
         best = search.policy_best_rewards
         dropped = torch.argsort(best, descending=True, stable=True)[max_policies:]
@@ -192,7 +192,7 @@ class OverlapMatching:
         fresh = [c for c in range(k_new) if continues[c] < 0]
         fresh.sort(key=component_best.__getitem__, reverse=True)  # (stable: ties by index)
         continued = [c for c in range(k_new) if continues[c] >= 0]
-        max_policies = search.options.max_policies
+        max_policies = search.max_policies
         flags = policies.active_flags()
         refining = sum(1 for j in range(k) if flags[j] and not clustered[j])
         room = (

@@ -84,6 +84,8 @@ ADDED_KEYS = {
     "algo.optimizer.retire_spread": 0.0,
     # Runs from before the coverage options could start at a trial.
     "algo.optimizer.coverage_from": None,
+    # Runs from before the covering phase could have a cap of its own.
+    "algo.optimizer.coverage_max_policies": None,
     # Runs from before the wakes went to the policies near the best return first (and
     # before the opt-in wakes beside active policies and cap on a new policy's exploration).
     "algo.optimizer.refine_gate": 1.0,
