@@ -23,6 +23,9 @@ exploration) runs through the same ``ask``/``tell`` as DIPOLE (the told rows' ch
 archive, the importance sets, eq. 7, the seeded draws) with one policy and none of DIPOLE's
 mechanisms (clusterings, success rule, retirement, scouts, probes): DIPOLE's ratio to it is
 what those mechanisms add to a trial, its ratio to IPOP-CMA-ES what the ask/tell itself costs.
+The opt-in method "PoWER (bare loop)" is the same algorithm as a dozen lines of eager torch
+(one sample, the best M kept, eq. 7, the decay; no checks of the told rows, no archive of
+owners, no seeded draws, no undo on error): the floor of a per-trial update in eager torch.
 """
 
 from __future__ import annotations
@@ -36,12 +39,45 @@ import torch
 from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_multioptima import OPT_IN, RUNNERS, case_seeds, make_landscape  # noqa: E402
+from bench_multioptima import OPT_IN as GRID_OPT_IN  # noqa: E402
+from bench_multioptima import RUNNERS as GRID_RUNNERS  # noqa: E402
+from bench_multioptima import Snapshots, case_seeds, make_landscape  # noqa: E402
 
 from dipole_torch.dp.sampler import DPSampler  # noqa: E402
 
 METHODS = ("DIPOLE", "DIPOLE (paper)", "PoWER", "IPOP-CMA-ES", "NMMSO")
 ANCHORS = ("IPOP-CMA-ES", "NMMSO", "PoWER")
+
+
+def run_bare_power(landscape, budgets, seed: int) -> Snapshots:
+    """PoWER as ``bench_multioptima`` sets it up (θ0 the box's centre, Σ_start its
+    quarter-widths squared, the fixed reward range, ``exploration_decay=0.98``, M = n0 = 5,
+    weights floored at 1e-3, the covariance's factor at 1e-2), in a bare eager-torch loop: the
+    work of a trial with nothing around it."""
+    generator = torch.Generator().manual_seed(seed)
+    lower, upper = landscape.lower, landscape.upper
+    mean = 0.5 * (lower + upper)
+    scale = torch.diag(0.25 * (upper - lower))  # Σ_start's Cholesky factor
+    low, high = landscape.reward_range
+    top, m = budgets[-1], 5
+    noise = torch.randn(m, mean.shape[0], generator=generator, dtype=mean.dtype)
+    thetas = torch.minimum(torch.maximum(mean + noise @ scale.T, lower), upper)
+    rewards = landscape(thetas)
+    for iteration in range(1, top - m + 1):
+        best = torch.topk(rewards, min(m, rewards.shape[0]))
+        thetas, rewards = thetas[best.indices], best.values
+        weights = ((rewards - low) / (high - low)).clamp(1e-3, 1.0)
+        mean = mean + (weights[:, None] * (thetas - mean)).sum(0) / weights.sum()
+        factor = max(0.98**iteration, 1e-2) ** 0.5
+        noise = torch.randn(1, mean.shape[0], generator=generator, dtype=mean.dtype)
+        theta = torch.minimum(torch.maximum(mean + factor * noise @ scale.T, lower), upper)
+        thetas = torch.cat((thetas, theta))
+        rewards = torch.cat((rewards, landscape(theta)))
+    return {top: (mean[None], top)}
+
+
+RUNNERS = {**GRID_RUNNERS, "PoWER (bare loop)": run_bare_power}
+OPT_IN = (*GRID_OPT_IN, "PoWER (bare loop)")
 
 
 class TimedLandscape:

@@ -25,3 +25,14 @@ def test_the_counter_is_removed_when_a_run_fails():
     with pytest.raises(RuntimeError), bench.SweepCount():
         raise RuntimeError("a failing run")
     assert DPSampler.sweep is sweep
+
+
+def test_the_bare_power_loop_spends_its_budget_and_climbs():
+    from bench_multioptima import case_seeds, make_landscape
+
+    cpu, trials, sweeps = bench.optimizer_cpu("PoWER (bare loop)", 2, 2, 0, 300)
+    assert cpu > 0 and trials == 300 and sweeps == 0
+    landscape = make_landscape(2, 2, case_seeds(2, 2, 0)[0])
+    start = landscape(0.5 * (landscape.lower + landscape.upper)[None])
+    (mean, used) = bench.run_bare_power(landscape, [300], 0)[300]
+    assert used == 300 and float(landscape(mean)) > float(start)
