@@ -82,10 +82,11 @@ def importance_sets(
         index ``[K, M]`` sample index of each slot (−1 for an empty slot, best first);
         valid ``[K, M]`` bool mask of filled slots.
 
-    Ties go to the earlier sample. On the CPU the sets are chosen in Python scalars
-    (``_host_sets``), elsewhere in tensor operations (``_tensor_sets``): the same sets.
+    Ties go to the earlier sample. On the CPU, up to ``HOST_ROWS`` samples, the sets are
+    chosen in Python scalars (``_host_sets``); otherwise in tensor operations
+    (``_tensor_sets``): the same sets.
     """
-    if owner.device.type != "cpu":
+    if not _on_host(owner):
         return _tensor_sets(owner, rewards, num_policies, size)
     sets = _host_sets(owner.tolist(), rewards.tolist(), num_policies, size)
     chosen = [False] * owner.shape[0]
@@ -115,7 +116,7 @@ def importance_rows(
         row, or row 0 when no row is owned, to be weighted 0);
         valid ``[K, M]`` bool mask of filled slots.
     """
-    if owner.device.type != "cpu":
+    if not _on_host(owner):
         return _tensor_rows(owner, rewards, num_policies, size)
     owners = owner.tolist()
     sets = _host_sets(owners, rewards.tolist(), num_policies, size)
@@ -132,13 +133,22 @@ def importance_rows(
     return kept_rows, index, valid.reshape(num_policies, size)
 
 
+# Up to this many samples the importance sets are chosen in Python scalars on the CPU: at an
+# archive's usual sizes (tens of rows) that is a few microseconds where the tensor path makes
+# some forty calls, each cold in a run (docs: Speed); from about a thousand rows (a large
+# first batch) the tensor path's sorts are the faster.
+HOST_ROWS = 512
+
+
+def _on_host(owner: Tensor) -> bool:
+    """Whether the sets of ``owner [N]`` are chosen in Python scalars."""
+    return owner.device.type == "cpu" and owner.shape[0] <= HOST_ROWS
+
+
 def _host_sets(owner: list[int], rewards: list[float], num_policies: int, size: int) -> list:
     """The rows of each policy's importance set, best first (ties: the earlier row first,
     Python's sort being stable), as K lists of at most ``size`` rows; rows of owner < 0
-    belong to none.
-
-    At the archive's sizes (tens of rows) this is a few microseconds of Python where the
-    tensor path makes some forty calls, each cold in a run (see the speed page)."""
+    belong to none."""
     groups: list[list[int]] = [[] for _ in range(num_policies)]
     for row, policy in enumerate(owner):
         if policy >= 0:

@@ -104,6 +104,24 @@ def test_importance_rows_keep_samples_of_no_policy(seed, rows_of):
     assert kept.tolist() == [i for i in range(owner.shape[0]) if owner[i] < 0 or i in chosen]
 
 
+def test_a_large_archive_takes_the_tensor_path_with_the_same_sets():
+    """Beyond ``HOST_ROWS`` samples the sets come from the tensor path (its sorts are the
+    faster there): the same sets as a sort by hand."""
+    from dipole_torch.power import HOST_ROWS
+
+    g = torch.Generator().manual_seed(5)
+    n, k, size = HOST_ROWS + 100, 4, 5
+    owner = torch.randint(-1, k, (n,), generator=g)
+    rewards = torch.randint(-3, 4, (n,), generator=g).to(F64)  # (many ties)
+    kept, rows, valid = importance_rows(owner, rewards, k, size)
+    expected = _sets_by_hand(owner.tolist(), rewards.tolist(), k, size)
+    assert rows.tolist() == expected and valid.all()
+    chosen = {i for row in expected for i in row}
+    assert kept.tolist() == [i for i in range(n) if owner[i] < 0 or i in chosen]
+    keep, index, _ = importance_sets(owner.clamp_min(0), rewards, k, size)
+    assert index.tolist() == _sets_by_hand(owner.clamp_min(0).tolist(), rewards.tolist(), k, size)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_power_converges_on_a_concave_quadratic(seed):
     optimum = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
