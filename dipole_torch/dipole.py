@@ -122,7 +122,8 @@ class Dipole(PolicySearch):
             and self.device.type == "cpu"
         )
         self.auxiliary = "reuse" if reuse else "fresh"
-        # Active policies at most; ``coverage_max_policies`` from ``coverage_from`` on.
+        # Active policies at most (the cap the clusterings and the hill-valley test keep):
+        # ``coverage_max_policies`` from ``coverage_from`` on.
         self.max_policies = options.max_policies
         # The mechanisms, one object each ("off" is an object too).
         self.importance = make_importance(options.importance)
@@ -131,8 +132,8 @@ class Dipole(PolicySearch):
             options.explore, options.max_sampled, options.restarts, options.unjudged_share
         )
         self.vetting = make_vetting(
-            options.hill_valley, d, self.device, options.pair_points, options.max_policies,
-            self.cluster_every, options.accept_unjudged, options.marks_unjudged,
+            options.hill_valley, d, self.device, options.pair_points, self.cluster_every,
+            options.accept_unjudged, options.marks_unjudged,
         )  # fmt: skip
         self.retirement = Retirement(
             options.retire_std, options.merge_radius, self.exploration.keeps_covariance,
@@ -209,7 +210,6 @@ class Dipole(PolicySearch):
         self.scouting.max_sampled = None if covering else self.options.max_sampled
         cap = self.options.coverage_max_policies
         self.max_policies = cap if covering and cap is not None else self.options.max_policies
-        self.vetting.max_policies = self.max_policies
 
     def _propose(self) -> tuple[Tensor, Tensor]:
         """Policy samples, then scouts, then hill-valley probes."""

@@ -294,7 +294,7 @@ def test_coverage_max_policies_caps_the_active_policies_from_coverage_from_on():
             most[cap] = max(most[cap], sum(opt.policy_set.active_flags()))
         assert opt.options.max_policies == 8  # the options as given stay the settings
     assert most[None] == 8 and most[10] == 10
-    assert runs[10].max_policies == 10 and runs[10].vetting.max_policies == 10
+    assert runs[10].max_policies == 10 and runs[None].max_policies == 8
 
 
 def test_before_coverage_max_policies_acts_the_run_is_the_coverage_from_run():

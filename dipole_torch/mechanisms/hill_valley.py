@@ -5,7 +5,7 @@ A probe worse than both ends shows a valley between them. Two uses:
 
 * A candidate — a clustering's new component, or a scout alone in one — becomes a policy
   only if a probe halfway between its best sample and the nearest policy's best sample
-  finds a valley (while fewer than ``max_policies`` are active); with ``accept_unjudged``
+  finds a valley (while fewer than ``Dipole.max_policies`` are active); with ``accept_unjudged``
   also when no valley shows but the two lie beyond each other's reach (``PAIR_REACH``). A
   candidate on the hill of a retired policy with a better sample than that policy's best
   replaces it: the retired policy stopped short of the top. A policy accepted that way
@@ -32,6 +32,7 @@ from dipole_torch.mechanisms.retirement import exploration_distance
 from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
+    from dipole_torch.dipole import Dipole
     from dipole_torch.search import PolicySearch, TellBatch
 
 __all__ = ["HillValley", "NoVetting", "make_vetting"]
@@ -83,7 +84,6 @@ class HillValley(NoVetting):
         device: where the queues live.
         pair_points: probes between two neighbouring policies, at i/(pair_points + 1) of the
             way (1: the midpoint; 3: Ursem's 1/4, 1/2, 3/4).
-        max_policies: active policies at most (``None``: no limit).
         cluster_every: iterations between clusterings (pairs are probed every fourth).
         accept_unjudged: a candidate whose probe shows no valley becomes a policy too when
             neither it (its starting covariance) nor the policy it was probed against
@@ -112,7 +112,6 @@ class HillValley(NoVetting):
         dim: int,
         device: torch.device,
         pair_points: int,
-        max_policies: int | None,
         cluster_every: int,
         accept_unjudged: bool = False,
         marks_unjudged: bool = False,
@@ -121,7 +120,6 @@ class HillValley(NoVetting):
         # (The field is kept from the start when acceptance starts later: ``coverage_from``.)
         self.marks_unjudged = self.accept_unjudged or bool(marks_unjudged)
         self.pair_points = int(pair_points)
-        self.max_policies = max_policies
         self.cluster_every = int(cluster_every)
         vector = torch.empty(0, dim, dtype=DTYPE, device=device)
         scalar = torch.empty(0, dtype=DTYPE, device=device)
@@ -264,15 +262,14 @@ class HillValley(NoVetting):
         factor = (half_gap / relative.clamp_min(1e-300)).clamp(max=1.0).square()
         self.candidate_covariances = factor[:, None, None] * self.candidate_covariances
 
-    def _accept(
-        self, search: PolicySearch, accept: Tensor, unjudged: Tensor | None = None
-    ) -> Tensor:
-        """New policies from the ``accept``-ed candidates ``[C]`` (within ``max_policies``,
-        the best first), those accepted ``unjudged [C]`` marked so; the candidate queue is
-        emptied. Returns the indices of the candidates that became policies."""
+    def _accept(self, search: Dipole, accept: Tensor, unjudged: Tensor | None = None) -> Tensor:
+        """New policies from the ``accept``-ed candidates ``[C]`` (within the cap in force,
+        ``Dipole.max_policies``, the best first), those accepted ``unjudged [C]`` marked so;
+        the candidate queue is emptied. Returns the indices of the candidates that became
+        policies."""
         index = accept.nonzero().squeeze(-1)
-        if self.max_policies is not None:
-            room = max(self.max_policies - sum(search.policy_set.active_flags()), 0)
+        if search.max_policies is not None:
+            room = max(search.max_policies - sum(search.policy_set.active_flags()), 0)
             index = index[torch.argsort(self.candidate_rewards[index], descending=True)][:room]
         n = index.numel()
         if n:
@@ -382,7 +379,6 @@ def make_vetting(
     dim: int,
     device: torch.device,
     pair_points: int,
-    max_policies: int | None,
     cluster_every: int,
     accept_unjudged: bool = False,
     marks_unjudged: bool = False,
@@ -390,6 +386,4 @@ def make_vetting(
     """``HillValley`` with ``hill_valley``, else ``NoVetting``."""
     if not hill_valley:
         return NoVetting()
-    return HillValley(
-        dim, device, pair_points, max_policies, cluster_every, accept_unjudged, marks_unjudged
-    )
+    return HillValley(dim, device, pair_points, cluster_every, accept_unjudged, marks_unjudged)
