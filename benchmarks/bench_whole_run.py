@@ -41,7 +41,7 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_multioptima import OPT_IN as GRID_OPT_IN  # noqa: E402
 from bench_multioptima import RUNNERS as GRID_RUNNERS  # noqa: E402
-from bench_multioptima import Snapshots, case_seeds, make_landscape  # noqa: E402
+from bench_multioptima import Snapshots, _start, case_seeds, make_landscape  # noqa: E402
 
 from dipole_torch.dp.sampler import DPSampler  # noqa: E402
 
@@ -55,13 +55,12 @@ def run_bare_power(landscape, budgets, seed: int) -> Snapshots:
     weights floored at 1e-3, the covariance's factor at 1e-2), in a bare eager-torch loop: the
     work of a trial with nothing around it."""
     generator = torch.Generator().manual_seed(seed)
-    lower, upper = landscape.lower, landscape.upper
-    mean = 0.5 * (lower + upper)
-    scale = torch.diag(0.25 * (upper - lower))  # Σ_start's Cholesky factor
+    mean, sigma_start, (lower, upper) = _start(landscape)
+    scale = sigma_start.sqrt()  # (diagonal: its Cholesky factor)
     low, high = landscape.reward_range
     top, m = budgets[-1], 5
     noise = torch.randn(m, mean.shape[0], generator=generator, dtype=mean.dtype)
-    thetas = torch.minimum(torch.maximum(mean + noise @ scale.T, lower), upper)
+    thetas = (mean + noise @ scale.T).clamp(lower, upper)
     rewards = landscape(thetas)
     for iteration in range(1, top - m + 1):
         best = torch.topk(rewards, min(m, rewards.shape[0]))
@@ -70,7 +69,7 @@ def run_bare_power(landscape, budgets, seed: int) -> Snapshots:
         mean = mean + (weights[:, None] * (thetas - mean)).sum(0) / weights.sum()
         factor = max(0.98**iteration, 1e-2) ** 0.5
         noise = torch.randn(1, mean.shape[0], generator=generator, dtype=mean.dtype)
-        theta = torch.minimum(torch.maximum(mean + factor * noise @ scale.T, lower), upper)
+        theta = (mean + factor * noise @ scale.T).clamp(lower, upper)
         thetas = torch.cat((thetas, theta))
         rewards = torch.cat((rewards, landscape(theta)))
     return {top: (mean[None], top)}

@@ -88,11 +88,7 @@ def importance_sets(
     """
     if not _on_host(owner):
         return _tensor_sets(owner, rewards, num_policies, size)
-    sets = _host_sets(owner.tolist(), rewards.tolist(), num_policies, size)
-    chosen = [False] * owner.shape[0]
-    for rows in sets:
-        for row in rows:
-            chosen[row] = True
+    sets, chosen = _host_sets(owner.tolist(), rewards.tolist(), num_policies, size)
     index = torch.tensor(_padded(sets, size, -1), dtype=torch.long).reshape(num_policies, size)
     return torch.tensor(chosen, dtype=torch.bool), index, index >= 0
 
@@ -119,17 +115,14 @@ def importance_rows(
     if not _on_host(owner):
         return _tensor_rows(owner, rewards, num_policies, size)
     owners = owner.tolist()
-    sets = _host_sets(owners, rewards.tolist(), num_policies, size)
-    kept = [policy < 0 for policy in owners]
-    for rows in sets:
-        for row in rows:
-            kept[row] = True
+    sets, chosen = _host_sets(owners, rewards.tolist(), num_policies, size)
     # With no owned row (every kept sample a scout's), the empty slots point at row 0.
     empty = next((row for row, policy in enumerate(owners) if policy >= 0), 0)
     index = torch.tensor(_padded(sets, size, empty), dtype=torch.long).reshape(num_policies, size)
     filled = [[True] * len(rows) for rows in sets]
     valid = torch.tensor(_padded(filled, size, False), dtype=torch.bool)
-    kept_rows = torch.tensor([row for row, keep in enumerate(kept) if keep], dtype=torch.long)
+    kept = [row for row, policy in enumerate(owners) if policy < 0 or chosen[row]]
+    kept_rows = torch.tensor(kept, dtype=torch.long)
     return kept_rows, index, valid.reshape(num_policies, size)
 
 
@@ -145,15 +138,22 @@ def _on_host(owner: Tensor) -> bool:
     return owner.device.type == "cpu" and owner.shape[0] <= HOST_ROWS
 
 
-def _host_sets(owner: list[int], rewards: list[float], num_policies: int, size: int) -> list:
+def _host_sets(
+    owner: list[int], rewards: list[float], num_policies: int, size: int
+) -> tuple[list[list[int]], list[bool]]:
     """The rows of each policy's importance set, best first (ties: the earlier row first,
-    Python's sort being stable), as K lists of at most ``size`` rows; rows of owner < 0
-    belong to none."""
+    Python's sort being stable), as K lists of at most ``size`` rows, and ``[N]`` whether each
+    row is in one; rows of owner < 0 belong to none."""
     groups: list[list[int]] = [[] for _ in range(num_policies)]
     for row, policy in enumerate(owner):
         if policy >= 0:
             groups[policy].append(row)
-    return [sorted(rows, key=lambda row: -rewards[row])[:size] for rows in groups]
+    sets = [sorted(rows, key=lambda row: -rewards[row])[:size] for rows in groups]
+    chosen = [False] * len(owner)
+    for rows in sets:
+        for row in rows:
+            chosen[row] = True
+    return sets, chosen
 
 
 def _padded(rows: list[list], size: int, fill) -> list:
