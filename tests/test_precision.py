@@ -161,6 +161,21 @@ def test_woken_policies_keep_to_their_share_of_the_trials():
     assert opt.active.tolist() == [False, True]  # the best one only, gain or not
 
 
+def test_a_barren_wake_takes_the_least_refined_policy_near_the_best():
+    # The share is spent and the restarts find nothing: one policy is woken, gain or not.
+    # Policy 0 is the best but went three levels further already; of the least refined near
+    # the best (within 0.1 of the range [−1, 1]), policy 2 is the better; policy 3 is far
+    # below the best, policy 1 as refined as policy 0.
+    opt = retired(stds=[1e-4] * 4, refinements=[3, 3, 0, 0],
+                  returns=[(1.0, 1.0 - 1e-12), (0.95, 0.9), (0.93, 0.92), (0.5, 0.4)])  # fmt: skip
+    waking = opt.retirement.waking
+    waking.refine_trials = 50
+    waking.barren_restart_trials = 400
+    opt.retirement.wake(opt)
+    assert opt.active.tolist() == [False, False, True, False]
+    assert opt.policy_set.refinements.tolist() == [3, 3, 1, 0]
+
+
 def test_a_policy_resolved_to_rounding_or_on_a_plateau_is_not_woken():
     opt = retired(stds=[1e-13, 1e-4, 1e-4], refinements=[0, 0, 0],
                   returns=[(0.9, 0.8), (1.0, 1.0), (0.5, 0.4)])  # fmt: skip

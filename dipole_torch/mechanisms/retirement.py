@@ -158,11 +158,14 @@ class Waking(NoWaking):
       active (they share the trials as ``max_sampled`` says); without it, only once none is.
       The gate orders the wakes, best optima first: a policy further below is woken once
       those near the best show no gain left.
-    * **Barren restarts**: with no policy active, otherwise the best retired policy
-      (highest kept return), whatever its returns show, while the woken policies have taken
-      less than ``share`` of the trials of restarts and woken policies since the last new
+    * **Barren restarts**: with no policy active, otherwise one retired policy, whatever
+      its returns show: of those within ``gate`` of the best one's return, the least woken,
+      and of those the best (highest kept return); while the woken policies have taken less
+      than ``share`` of the trials of restarts and woken policies since the last new
       policy. A narrow peak on a broad hill shows no gain until the exploration reaches its
-      scale; when the restarts find nothing, the best solution is the one to make better.
+      scale; when the restarts find nothing, the solutions found are the ones to make
+      better, each one level further before any goes two (the best one alone, woken level
+      after level, was refined to rounding while the others stayed where they retired).
 
     Otherwise the run restarts as before (the next asks are scouts from the start
     distribution); the first time every policy has retired, it restarts first. The woken
@@ -294,8 +297,12 @@ class Waking(NoWaking):
             fewest = policies.refinements[visible].min()
             woken = visible & (policies.refinements == fewest)
         elif not busy and barren and bool(wakeable.any()):
-            # The best one only: the restarts find nothing, the best solution can be better.
-            best = torch.where(wakeable, search.policy_best_rewards, -math.inf)
+            # One policy: the restarts find nothing, the solutions found can be better. The
+            # least refined near the best first (breadth first), the best of them.
+            candidates = self.near_best(search, wakeable)
+            fewest = policies.refinements[candidates].min()
+            candidates = candidates & (policies.refinements == fewest)
+            best = torch.where(candidates, search.policy_best_rewards, -math.inf)
             woken = torch.zeros_like(wakeable)
             woken[int(best.argmax())] = True
         else:
