@@ -5,6 +5,7 @@ trials? DIPOLE against IPOP-CMA-ES, NMMSO and random search, in one run.
     python benchmarks/bench_niching.py --functions 2 4 7 --seeds 2 --budgets 2000 \\
         --json /tmp/niching.json                                 # a quick look
     python benchmarks/bench_niching.py --methods DIPOLE --keep-others   # DIPOLE's rows anew
+    python benchmarks/bench_niching.py --suite more     # six functions of other kinds
 
 **Functions** (``FUNCTIONS``): F1–F10 of the CEC 2013 competition on niching methods
 (Li, Engelbrecht & Epitropakis 2013, "Benchmark functions for CEC'2013 special session and
@@ -16,6 +17,12 @@ towards the box's corner; 3-D, 216) and the modified Rastrigin (2-D, 12). These 
 functions of the report whose optima are known in closed form (F11–F20 are compositions).
 The generated landscapes of ``bench_multioptima.py`` are the development benchmark; these are
 a check on functions the library was not tuned on.
+
+**More functions** (``--suite more``, ``MORE_FUNCTIONS``, report
+``docs/figures/niching_more.json``): six of kinds F1–F10 lack, counted the same way:
+Branin (2-D, 3 optima), F2's peaks along both axes (2-D, 25), two Himmelblau functions side
+by side (4-D, 16), Cauchy peaks of several widths (5-D, 7), the lowest of rotated quadratic
+bowls of condition number 100 (10-D, 8) and of cones of several slopes (20-D, 6).
 
 **Found** (the competition's own count, ``how_many_goptima``): the returned solutions, sorted
 by value, best first, become seeds unless within the function's radius ρ of an earlier seed;
@@ -194,6 +201,70 @@ FUNCTIONS = (
 )  # fmt: skip
 
 
+# ------------------------------------------------------------------------- more functions
+# ``--suite more``: six functions of kinds F1–F10 lack (higher dimensions, rotated
+# ill-conditioned basins, cones, peaks of several widths), each with a known set of equally
+# good global optima. The centres are drawn once, from a fixed seed.
+def branin(x: Tensor) -> Tensor:
+    """Branin's function, negated: 3 global optima on [−5, 10] × [0, 15]."""
+    a, b = x[:, 0], x[:, 1]
+    quadratic = (b - 5.1 / (4.0 * math.pi**2) * a.square() + 5.0 / math.pi * a - 6.0).square()
+    return -(quadratic + 10.0 * (1.0 - 1.0 / (8.0 * math.pi)) * torch.cos(a) + 10.0)
+
+
+def equal_maxima_2d(x: Tensor) -> Tensor:
+    """F2's peaks along both axes: 25 global optima on [0, 1]²."""
+    return torch.sin(5.0 * math.pi * x).pow(6).prod(-1)
+
+
+def double_himmelblau(x: Tensor) -> Tensor:
+    """Two Himmelblau functions on (x1, x2) and (x3, x4): 16 global optima on [−6, 6]⁴."""
+    return himmelblau(x[:, :2]) + himmelblau(x[:, 2:])
+
+
+_CENTRES = torch.Generator().manual_seed(12345)
+_BOWL_CENTRES = torch.rand(8, 10, generator=_CENTRES, dtype=DTYPE) * 8.0 - 4.0
+_ROTATION = torch.linalg.qr(torch.randn(10, 10, generator=_CENTRES, dtype=DTYPE))[0]
+# Eigenvalues 0.1 … 10: a condition number of 100.
+_BOWL_SHAPE = _ROTATION @ torch.diag(torch.logspace(0, 2, 10, dtype=DTYPE)) @ _ROTATION.T / 10.0
+_CONE_CENTRES = torch.rand(6, 20, generator=_CENTRES, dtype=DTYPE) * 8.0 - 4.0
+_CONE_SLOPES = torch.linspace(0.5, 2.0, 6, dtype=DTYPE)
+_PEAK_CENTRES = torch.rand(7, 5, generator=_CENTRES, dtype=DTYPE) * 8.0 - 4.0
+_PEAK_WIDTHS = torch.linspace(0.5, 2.0, 7, dtype=DTYPE)
+
+
+def cauchy_peaks(x: Tensor) -> Tensor:
+    """7 peaks 1 / (1 + |x − c|² / w²) of widths 0.5 … 2: 7 global optima on [−5, 5]⁵."""
+    distance = (x[:, None, :] - _PEAK_CENTRES).square().sum(-1)
+    return (1.0 / (1.0 + distance / _PEAK_WIDTHS.square())).amax(-1)
+
+
+def rotated_bowls(x: Tensor) -> Tensor:
+    """The lowest of 8 rotated quadratic bowls (condition number 100), negated: 8 global
+    optima on [−5, 5]¹⁰."""
+    d = x[:, None, :] - _BOWL_CENTRES
+    return -torch.einsum("bkd,de,bke->bk", d, _BOWL_SHAPE, d).amin(-1)
+
+
+def cones(x: Tensor) -> Tensor:
+    """The lowest of 6 cones of slopes 0.5 … 2, negated: 6 global optima on [−5, 5]²⁰."""
+    return -((x[:, None, :] - _CONE_CENTRES).norm(dim=-1) * _CONE_SLOPES).amin(-1)
+
+
+MORE_FUNCTIONS = (
+    NichingFunction("M1 Branin 2D", branin, *_box([-5, 0], [10, 15]), 3,
+                    -0.39788735772973816, 0.5),
+    NichingFunction("M2 equal maxima 2D", equal_maxima_2d, *_box([0, 0], [1, 1]), 25, 1.0, 0.05),
+    NichingFunction("M3 double Himmelblau 4D", double_himmelblau, *_box([-6] * 4, [6] * 4), 16,
+                    400.0, 0.5),
+    NichingFunction("M4 Cauchy peaks 5D", cauchy_peaks, *_box([-5] * 5, [5] * 5), 7, 1.0, 0.5),
+    NichingFunction("M5 rotated bowls 10D", rotated_bowls, *_box([-5] * 10, [5] * 10), 8, 0.0,
+                    0.5),
+    NichingFunction("M6 cones 20D", cones, *_box([-5] * 20, [5] * 20), 6, 0.0, 0.5),
+)  # fmt: skip
+SUITES = {"cec2013": FUNCTIONS, "more": MORE_FUNCTIONS}
+
+
 # ------------------------------------------------------------------------------------ methods
 def run_random_search(
     problem: NichingFunction, budgets: Sequence[int], seed: int
@@ -215,19 +286,23 @@ RUNNERS: dict[str, Callable[[NichingFunction, Sequence[int], int], peers.Snapsho
 }
 
 
-def run_case(number: int, seed: int, method: str, budgets: Sequence[int]) -> dict:
-    """Run ``method`` on function F``number`` (1–10) with ``seed``, up to the largest budget.
+def run_case(
+    number: int, seed: int, method: str, budgets: Sequence[int], suite: str = "cec2013"
+) -> dict:
+    """Run ``method`` on function ``number`` (from 1) of ``suite`` (``SUITES``: F1–F10, or
+    the six ``MORE_FUNCTIONS``) with ``seed``, up to the largest budget.
 
     Returns:
         A JSON-ready dict with, per budget, ``found`` per accuracy level, ``returned``
         (solutions returned) and ``trials`` (trials used), and ``seconds``.
     """
-    if not 1 <= number <= len(FUNCTIONS):
-        raise ValueError(f"function number must lie in 1..{len(FUNCTIONS)}, got {number}")
+    functions = SUITES[suite]
+    if not 1 <= number <= len(functions):
+        raise ValueError(f"function number must lie in 1..{len(functions)}, got {number}")
     budgets = sorted({int(b) for b in budgets})
     if budgets[0] < 1:
         raise ValueError(f"budgets must be positive, got {budgets}")
-    problem = FUNCTIONS[number - 1]
+    problem = functions[number - 1]
     method_seed = 1000 * number + seed
     snapshots, seconds = peers.run_timed(RUNNERS[method], problem, budgets, method_seed, method)
     results = {}
@@ -254,7 +329,8 @@ def run_case(number: int, seed: int, method: str, budgets: Sequence[int]) -> dic
 
 
 def _progress(i: int, n: int, case: dict) -> str:
-    tag = f"[{i}/{n}] F{case['function']} seed={case['seed']} {case['method']}"
+    name = case.get("name", f"function {case['function']}")
+    tag = f"[{i}/{n}] {name} seed={case['seed']} {case['method']}"
     if "error" in case:
         return f"{tag}: ERROR {case['error']}"
     found = ", ".join(f"{v['found'][str(1e-3)]} @{b}" for b, v in case["budgets"].items())
@@ -262,22 +338,24 @@ def _progress(i: int, n: int, case: dict) -> str:
 
 
 def _task(args: tuple) -> dict:
-    number, seed, method, budgets = args
+    number, seed, method, budgets, suite = args
     try:
-        return run_case(number, seed, method, budgets)
+        return run_case(number, seed, method, budgets, suite)
     except Exception as error:  # reported in the table and the JSON
         return {"function": number, "seed": seed, "method": method, "error": repr(error)}
 
 
 # ------------------------------------------------------------------------------------ reports
-def summarize(cases: list[dict], methods, numbers, budgets) -> tuple[str, dict]:
+def summarize(
+    cases: list[dict], methods, numbers, budgets, functions=FUNCTIONS
+) -> tuple[str, dict]:
     """The printed tables (one per accuracy level) and the JSON summary."""
 
     def cell(method: str, number: int, budget: int, accuracy: float) -> tuple[int, int, int]:
         runs = [c for c in cases if c["method"] == method and c["function"] == number]
         ok = [c for c in runs if "error" not in c]
         found = sum(c["budgets"][str(budget)]["found"][str(accuracy)] for c in ok)
-        return found, FUNCTIONS[number - 1].optima * len(ok), len(runs) - len(ok)
+        return found, functions[number - 1].optima * len(ok), len(runs) - len(ok)
 
     def text(found: int, total: int, errors: int) -> str:
         return f"{found}/{total}" + (f" ({errors} err)" if errors else "")
@@ -286,7 +364,7 @@ def summarize(cases: list[dict], methods, numbers, budgets) -> tuple[str, dict]:
     lines = []
     for accuracy in ACCURACIES:
         rows = [
-            [FUNCTIONS[n - 1].name] + [text(*cell(m, n, b, accuracy)) for m, b in columns]
+            [functions[n - 1].name] + [text(*cell(m, n, b, accuracy)) for m, b in columns]
             for n in numbers
         ]
         totals = [sum(cell(m, n, b, accuracy)[0] for n in numbers) for m, b in columns]
@@ -301,7 +379,7 @@ def summarize(cases: list[dict], methods, numbers, budgets) -> tuple[str, dict]:
             "seconds": seconds[m],
             "found": {
                 str(a): {
-                    str(b): {FUNCTIONS[n - 1].name: cell(m, n, b, a)[0] for n in numbers}
+                    str(b): {functions[n - 1].name: cell(m, n, b, a)[0] for n in numbers}
                     for b in budgets
                 }
                 for a in ACCURACIES
@@ -314,34 +392,50 @@ def summarize(cases: list[dict], methods, numbers, budgets) -> tuple[str, dict]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--functions", type=int, nargs="+", default=list(range(1, 11)))
+    parser.add_argument(
+        "--suite", choices=list(SUITES), default="cec2013",
+        help="CEC 2013's F1-F10, or six functions of other kinds (MORE_FUNCTIONS)",
+    )  # fmt: skip
+    parser.add_argument("--functions", type=int, nargs="+", help="numbers from 1 (default: all)")
     parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1 per function")
     parser.add_argument("--budgets", type=int, nargs="+", default=list(BUDGETS))
     parser.add_argument(
         "--methods", nargs="+", default=list(METHODS), choices=METHODS + peers.OPT_IN
     )
     parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
-    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "niching.json")
+    parser.add_argument(
+        "--json", type=Path,
+        help="the report (default: docs/figures/niching.json, niching_more.json with --suite more)",
+    )  # fmt: skip
     peers.add_keep_others(parser)
     args = parser.parse_args(argv)
+    functions = SUITES[args.suite]
+    if args.json is None:
+        name = "niching.json" if args.suite == "cec2013" else f"niching_{args.suite}.json"
+        args.json = ROOT / "docs" / "figures" / name
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS + peers.OPT_IN if m in args.methods]
-    numbers = sorted(set(args.functions))
+    numbers = sorted(set(args.functions or range(1, len(functions) + 1)))
     for n in numbers:
-        if not 1 <= n <= len(FUNCTIONS):
-            parser.error(f"--functions takes numbers in 1..{len(FUNCTIONS)}, got {n}")
+        if not 1 <= n <= len(functions):
+            parser.error(f"--functions takes numbers in 1..{len(functions)}, got {n}")
     # DIPOLE first (the slowest), so the processes finish together.
-    tasks = [(n, s, m, budgets) for m in methods for n in numbers for s in range(args.seeds)]
+    tasks = [
+        (n, s, m, budgets, args.suite) for m in methods for n in numbers for s in range(args.seeds)
+    ]
     grid = {"functions": numbers, "seeds": args.seeds, "budgets": budgets}
+    if args.suite != "cec2013":  # (reports of F1-F10 from before the suites say none)
+        grid["suite"] = args.suite
     cases, wall, methods = peers.run_keeping_others(
         _task, tasks, args, grid, methods, METHODS + peers.OPT_IN, _progress
     )
     order = {m: i for i, m in enumerate(METHODS + peers.OPT_IN)}
     cases.sort(key=lambda c: (order[c["method"]], c["function"], c["seed"]))
-    text, summary = summarize(cases, methods, numbers, budgets)
+    text, summary = summarize(cases, methods, numbers, budgets, functions)
     print(text)
     print(f"wall time {wall:.1f} s on {args.workers} process(es)")
     config = {
+        **({"suite": args.suite} if args.suite != "cec2013" else {}),
         "functions": numbers,
         "seeds": args.seeds,
         "budgets": budgets,

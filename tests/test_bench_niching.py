@@ -94,3 +94,49 @@ def test_every_method_the_command_line_offers_has_a_runner():
 def test_bad_function_number():
     with pytest.raises(ValueError, match="function number must lie in 1..10"):
         bench.run_case(11, 0, "DIPOLE", [10])
+
+
+# ------------------------------------------------------------------------- --suite more
+def branin_optima() -> torch.Tensor:
+    return torch.tensor([[-math.pi, 12.275], [math.pi, 2.275], [3 * math.pi, 2.475]], dtype=DTYPE)
+
+
+def more_optima(number: int) -> torch.Tensor:
+    """The global optima of MORE_FUNCTIONS[number − 1], known in closed form or by design."""
+    if number == 1:
+        return branin_optima()
+    if number == 2:  # sin⁶(5πx) = 1 at 0.1, 0.3, …, 0.9 on each axis
+        xs = torch.tensor([0.1, 0.3, 0.5, 0.7, 0.9], dtype=DTYPE)
+        return torch.cartesian_prod(xs, xs)
+    if number == 3:  # every pair of Himmelblau's four optima
+        two = KNOWN[4]
+        return torch.cat((two.repeat_interleave(4, 0), two.repeat(4, 1)), dim=1)
+    return {4: bench._PEAK_CENTRES, 5: bench._BOWL_CENTRES, 6: bench._CONE_CENTRES}[number]
+
+
+@pytest.mark.parametrize("number", range(1, len(bench.MORE_FUNCTIONS) + 1))
+def test_more_functions_their_optima_are_counted_and_none_is_higher(number):
+    problem = bench.MORE_FUNCTIONS[number - 1]
+    optima = more_optima(number)
+    assert optima.shape == (problem.optima, problem.dim)
+    assert ((optima >= problem.lower) & (optima <= problem.upper)).all()
+    assert problem(optima).sub(problem.f_star).abs().max() < 1e-5
+    assert problem.found(optima, 1e-4) == problem.optima
+    # Each optimum its own niche: no two within twice the count's radius.
+    distance = torch.cdist(optima, optima) + torch.eye(problem.optima, dtype=DTYPE) * 1e9
+    assert float(distance.min()) > 2 * problem.radius
+    # No point of the box is higher: random points, and each optimum's neighbourhood.
+    g = torch.Generator().manual_seed(number)
+    u = torch.rand(20_000, problem.dim, generator=g, dtype=DTYPE)
+    near = optima.repeat(50, 1) + 1e-3 * torch.randn(50 * problem.optima, problem.dim,
+                                                     generator=g, dtype=DTYPE)  # fmt: skip
+    points = torch.cat((problem.lower + (problem.upper - problem.lower) * u, near))
+    assert float(problem(points).max()) <= problem.f_star + 1e-9
+
+
+def test_one_run_of_the_more_suite_end_to_end():
+    case = bench.run_case(1, 0, "DIPOLE", [100, 250], suite="more")
+    assert case["name"] == "M1 Branin 2D"
+    assert all(0 <= n <= 3 for n in case["budgets"]["250"]["found"].values())
+    with pytest.raises(ValueError, match="function number must lie in 1..6"):
+        bench.run_case(7, 0, "DIPOLE", [10], suite="more")
