@@ -19,7 +19,8 @@ The runs, DIPOLE's default options as each benchmark sets them up:
   at 500 and 2000 trials);
 * ``bench_viapoint_qd.py``: viapoint seeds 0–2 (the routes held at 300 and 1000 trials);
 * ``bench_niching.py``: F7 and F9 (Vincent 2-D and 3-D), seeds 0 and 1, at 2000 and 10⁴
-  trials (the optima found at each accuracy, the solutions returned, the trials used).
+  trials (the optima found at each accuracy, the solutions returned, the trials used), and
+  the same for ``--suite more``'s double Himmelblau function (4-D), seeds 0 and 1.
 """
 
 from __future__ import annotations
@@ -67,12 +68,12 @@ def viapoint(seed: int) -> str:
     return repr(bench_viapoint_qd.run_dipole(seed, [300, 1000]))
 
 
-def niching(case: tuple[int, int]) -> str:
+def niching(case: tuple[int, int] | tuple[int, int, str]) -> str:
     _setup()
     import bench_niching
 
-    number, seed = case
-    result = bench_niching.run_case(number, seed, "DIPOLE", [2000, 10000])
+    number, seed, *suite = case
+    result = bench_niching.run_case(number, seed, "DIPOLE", [2000, 10000], *suite)
     return json.dumps(result["budgets"])  # per budget: optima found, solutions, trials
 
 
@@ -91,6 +92,7 @@ def main() -> None:
           for d in (2, 5, 10) for k in (2, 4, 8) for s in range(2)),
         *((viapoint, ("viapoint", s)) for s in range(3)),
         *((niching, ("niching", (n, s))) for n in (7, 9) for s in range(2)),
+        *((niching, ("niching", (3, s, "more"))) for s in range(2)),
     ]  # fmt: skip
     with ProcessPoolExecutor(args.workers) as pool:
         futures = [pool.submit(run, case) for run, (_, case) in jobs]
