@@ -296,6 +296,8 @@ def run_case(
         A JSON-ready dict with, per budget, ``found`` per accuracy level, ``returned``
         (solutions returned) and ``trials`` (trials used), and ``seconds``.
     """
+    if suite not in SUITES:
+        raise ValueError(f"suite must be one of {sorted(SUITES)}, got {suite!r}")
     functions = SUITES[suite]
     if not 1 <= number <= len(functions):
         raise ValueError(f"function number must lie in 1..{len(functions)}, got {number}")

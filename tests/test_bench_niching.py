@@ -140,3 +140,5 @@ def test_one_run_of_the_more_suite_end_to_end():
     assert all(0 <= n <= 3 for n in case["budgets"]["250"]["found"].values())
     with pytest.raises(ValueError, match="function number must lie in 1..6"):
         bench.run_case(7, 0, "DIPOLE", [10], suite="more")
+    with pytest.raises(ValueError, match="suite must be one of"):
+        bench.run_case(1, 0, "DIPOLE", [10], suite="cec2017")
