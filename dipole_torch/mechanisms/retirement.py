@@ -269,6 +269,13 @@ class Waking(NoWaking):
         best = torch.where(candidates, search.policy_best_rewards, -math.inf)
         return candidates & (best >= best.max() - self.returns.fraction(self.gate))
 
+    def least_woken_near_best(self, search: PolicySearch, candidates: Tensor) -> Tensor:
+        """``[K]`` of the ``candidates [K]`` (bool, at least one) near the best
+        (``near_best``), those woken the fewest times: every optimum near the best one level
+        further before any goes two."""
+        near = self.near_best(search, candidates)
+        return near & (search.policy_set.refinements == search.policy_set.refinements[near].min())
+
     def wake(self, search: PolicySearch) -> None:
         """Wake retired policies as the class docstring says."""
         policies = search.policy_set
@@ -293,15 +300,11 @@ class Waking(NoWaking):
         shared = self.refine_trials < self.share * (search.trials - self.converged_at)
         visible = wakeable & self.visible_gain(search)
         if shared and bool(visible.any()):
-            visible = self.near_best(search, visible)
-            fewest = policies.refinements[visible].min()
-            woken = visible & (policies.refinements == fewest)
+            woken = self.least_woken_near_best(search, visible)
         elif not busy and barren and bool(wakeable.any()):
-            # One policy: the restarts find nothing, the solutions found can be better. The
-            # least refined near the best first (breadth first), the best of them.
-            candidates = self.near_best(search, wakeable)
-            fewest = policies.refinements[candidates].min()
-            candidates = candidates & (policies.refinements == fewest)
+            # One policy: the restarts find nothing, the solutions found can be better; the
+            # same order as above, the best of them.
+            candidates = self.least_woken_near_best(search, wakeable)
             best = torch.where(candidates, search.policy_best_rewards, -math.inf)
             woken = torch.zeros_like(wakeable)
             woken[int(best.argmax())] = True
