@@ -83,13 +83,39 @@ class SampleArchive:
             lambda: torch.bincount(self._slots(), minlength=num_policies + 1)[1:],
         )
 
+    def host_lists(self) -> tuple[tuple[int, ...], tuple[float, ...]]:
+        """``owner`` and ``rewards`` as host numbers (the per-sample bookkeeping of an
+        iteration on the CPU runs on them). Memoised."""
+        return self._memo.get(
+            "host",
+            (self.owner, self.rewards),
+            lambda: (tuple(self.owner.tolist()), tuple(self.rewards.tolist())),
+        )
+
     def mean_rewards(self, num_policies: int) -> Tensor:
         """``[K]`` each policy's mean kept return (0 for a policy with none)."""
+        if self.rewards.device.type == "cpu":
+            return torch.tensor(self.host_mean_rewards(num_policies), dtype=DTYPE)
+        return self._tensor_mean_rewards(num_policies)
+
+    def _tensor_mean_rewards(self, num_policies: int) -> Tensor:
+        """``mean_rewards`` in tensor operations, on any device."""
         slots = self._slots()
         total = torch.zeros(num_policies + 1, dtype=DTYPE, device=self.rewards.device)
         # (Each slot's returns are summed in the archive's order, as over the owned ones.)
         total = total.index_add_(0, slots, self.rewards)[1:]
         return total / self.counts(num_policies).clamp_min(1)
+
+    def host_mean_rewards(self, num_policies: int) -> list[float]:
+        """``mean_rewards`` as K host numbers: each policy's returns summed in the archive's
+        order and divided by their count (at least 1), the tensor path's float64 operations."""
+        owner, rewards = self.host_lists()
+        total, count = [0.0] * num_policies, [0] * num_policies
+        for policy, value in zip(owner, rewards, strict=True):
+            if policy >= 0:
+                total[policy] += value
+                count[policy] += 1
+        return [t / max(n, 1) for t, n in zip(total, count, strict=True)]
 
     def best_samples(self, means: Tensor) -> Tensor:
         """``[K, D]`` each policy's best kept sample (its row of ``means [K, D]`` where it

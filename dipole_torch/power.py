@@ -15,6 +15,7 @@ The importance sets ("select the best M points") come in two variants, one objec
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import torch
@@ -115,13 +116,12 @@ def importance_rows(
     if not _on_host(owner):
         return _tensor_rows(owner, rewards, num_policies, size)
     owners = owner.tolist()
-    sets, chosen = _host_sets(owners, rewards.tolist(), num_policies, size)
+    sets, kept = _host_rows(owners, rewards.tolist(), num_policies, size)
     # With no owned row (every kept sample a scout's), the empty slots point at row 0.
     empty = next((row for row, policy in enumerate(owners) if policy >= 0), 0)
     index = torch.tensor(_padded(sets, size, empty), dtype=torch.long).reshape(num_policies, size)
     filled = [[True] * len(rows) for rows in sets]
     valid = torch.tensor(_padded(filled, size, False), dtype=torch.bool)
-    kept = [row for row, policy in enumerate(owners) if policy < 0 or chosen[row]]
     kept_rows = torch.tensor(kept, dtype=torch.long)
     return kept_rows, index, valid.reshape(num_policies, size)
 
@@ -131,6 +131,7 @@ def importance_rows(
 # some forty calls, each cold in a run (docs: Speed); from about a thousand rows (a large
 # first batch) the tensor path's sorts are the faster.
 HOST_ROWS = 512
+_TINY = torch.finfo(DTYPE).tiny
 
 
 def _on_host(owner: Tensor) -> bool:
@@ -139,7 +140,7 @@ def _on_host(owner: Tensor) -> bool:
 
 
 def _host_sets(
-    owner: list[int], rewards: list[float], num_policies: int, size: int
+    owner: Sequence[int], rewards: Sequence[float], num_policies: int, size: int
 ) -> tuple[list[list[int]], list[bool]]:
     """The rows of each policy's importance set, best first (ties: the earlier row first,
     Python's sort being stable), as K lists of at most ``size`` rows, and ``[N]`` whether each
@@ -154,6 +155,16 @@ def _host_sets(
         for row in rows:
             chosen[row] = True
     return sets, chosen
+
+
+def _host_rows(
+    owner: Sequence[int], rewards: Sequence[float], num_policies: int, size: int
+) -> tuple[list[list[int]], list[int]]:
+    """``_host_sets`` of an archive that holds samples of no policy too (owner < 0): the K
+    sets, and the rows to keep in archive order (every sample of no policy and every sample
+    in a set)."""
+    sets, chosen = _host_sets(owner, rewards, num_policies, size)
+    return sets, [row for row, policy in enumerate(owner) if policy < 0 or chosen[row]]
 
 
 def _padded(rows: list[list], size: int, fill) -> list:
@@ -200,6 +211,13 @@ class PolicyImportance:
     def power_step(self, search: PolicySearch) -> None:
         """Eq. 7 for every active policy on its importance set; the other samples policies
         own are dropped (samples of no policy, the scouts, are kept)."""
+        if self.host_weights is not None and _on_host(search.archive.owner):
+            self._host_step(search)
+        else:
+            self._tensor_step(search)
+
+    def _tensor_step(self, search: PolicySearch) -> None:
+        """``power_step`` in tensor operations, on any device."""
         archive, policies = search.archive, search.policy_set
         kept, index, valid = importance_rows(
             archive.owner, archive.rewards, search.num_policies, search.M
@@ -212,6 +230,46 @@ class PolicyImportance:
             means = torch.where(policies.active[:, None], means, policies.means)
         policies.means = means
         archive.keep(kept)
+
+    def _host_step(self, search: PolicySearch) -> None:
+        """``power_step`` on the CPU at an archive's usual sizes: the sets and the weights in
+        Python scalars, eq. 7 for the active policies alone (a dozen calls an iteration where
+        the tensor path makes some thirty; the same numbers: each policy's step is its own
+        row's, and the scalars are the tensor path's float64 operations)."""
+        archive, policies = search.archive, search.policy_set
+        owner, rewards = archive.host_lists()
+        sets, kept = _host_rows(owner, rewards, search.num_policies, search.M)
+        stepping = [k for k, flag in enumerate(policies.active_flags()) if flag and sets[k]]
+        if stepping:
+            size, floor = search.M, search.reward_scale.floor
+            rows: list[int] = []
+            weights: list[float] = []
+            for k in stepping:
+                slots = sets[k]
+                returns = [rewards[row] for row in slots]
+                weights += self.host_weights(returns, floor) + [0.0] * (size - len(slots))
+                rows += slots + [slots[0]] * (size - len(slots))  # (padding: weight 0)
+            at = torch.tensor(stepping, dtype=torch.long)
+            index = torch.tensor(rows, dtype=torch.long).view(len(stepping), size)
+            means = power_update(
+                policies.means[at],
+                archive.thetas[index],
+                torch.tensor(weights, dtype=DTYPE).view(len(stepping), size),
+                validate=False,
+            )
+            policies.means = policies.means.index_put((at,), means)
+        archive.keep(torch.tensor(kept, dtype=torch.long))
+
+    @staticmethod
+    def host_weights(returns: list[float], floor: float) -> list[float]:
+        """``slot_weights`` of one policy's kept ``returns`` (best first), in Python
+        scalars: each mapped onto [floor, 1] by their min–max, all 1 when they are equal."""
+        low, high = min(returns), max(returns)
+        spread = high - low
+        if not spread > 0:
+            return [1.0] * len(returns)
+        scale = max(spread, _TINY)
+        return [min(max((value - low) / scale, floor), 1.0) for value in returns]
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         """``[K, M]`` eq. 7's weights of the importance-set slots ``index`` (``valid`` marks
@@ -245,6 +303,9 @@ class GlobalImportance(PolicyImportance):
         top = min(search.num_policies * search.M, len(archive))
         archive.keep(torch.topk(archive.rewards, top).indices.sort().values)  # archive order
         super().power_step(search)
+
+    # No host path: the weights come from the reward scale over all kept returns.
+    host_weights = None
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         rewards = search.archive.rewards

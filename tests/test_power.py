@@ -159,3 +159,42 @@ def test_each_policy_weighs_its_samples_by_its_own_returns():
         torch.zeros(1, 2, dtype=F64), torch.tensor([-1e9], dtype=F64), torch.tensor([-1])
     )
     assert torch.equal(weights(opt, index, valid), before)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_host_step_is_the_tensor_step(seed):
+    # PolicyImportance.power_step on the CPU (Python scalars, the active policies alone) and
+    # on any other device (tensor operations, here on the CPU): the same means, bit for bit,
+    # and the same archive, with retired policies, scouts and partly filled sets.
+    opt = started_dipole(2, two_optima)
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(int(torch.randint(3, 30, (1,), generator=g))):
+        theta = opt.ask()
+        opt.tell(theta, two_optima(theta))
+    k = opt.num_policies
+    opt.policy_set.active = torch.rand(k, generator=g) < 0.6
+    scouts = torch.randn(3, 2, generator=g, dtype=F64)
+    opt.archive.append(scouts, two_optima(scouts), torch.full((3,), -1))
+    results = []
+    for step in ("_host_step", "_tensor_step"):
+        copy = started_dipole(2, two_optima)
+        copy.load_state_dict(opt.state_dict())
+        getattr(PolicyImportance(), step)(copy)
+        results.append((copy.policy_means, copy.archive.thetas, copy.archive.owner))
+    for host, tensor in zip(*results, strict=True):
+        assert torch.equal(host, tensor)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_mean_rewards_host_and_tensor_paths_agree(seed):
+    from dipole_torch.archive import SampleArchive
+
+    g = torch.Generator().manual_seed(seed)
+    n, k = int(torch.randint(0, 40, (1,), generator=g)), int(torch.randint(1, 6, (1,), generator=g))
+    archive = SampleArchive(2, torch.device("cpu"))
+    archive.append(
+        torch.randn(n, 2, generator=g, dtype=F64),
+        torch.randn(n, generator=g, dtype=F64) * 10.0 ** float(torch.randint(-3, 4, (1,))),
+        torch.randint(-1, k, (n,), generator=g),
+    )
+    assert torch.equal(archive.mean_rewards(k), archive._tensor_mean_rewards(k))

@@ -64,6 +64,11 @@ def exploration_distance(search: PolicySearch, diff: Tensor, rows: Tensor | None
     return torch.where(ok[:, None], mahalanobis(chol, diff), math.inf)
 
 
+def _per_policy(value: Tensor | float, k: int) -> list[float]:
+    """``value`` (``[K]``, or one number for every policy) as K host numbers."""
+    return value.tolist() if isinstance(value, Tensor) else [float(value)] * k
+
+
 def _spread(search: PolicySearch) -> Tensor:
     """``[K]`` the spread (max − min) of each policy's kept returns."""
     archive, k = search.archive, search.num_policies
@@ -416,14 +421,29 @@ class Retirement:
         finding other optima, and a wake refines it later); on a narrow one the std comes
         first. Only a policy with a full importance set (M kept samples) that explores below
         ``SPREAD_GATE`` of Σ_start's std is judged so."""
-        relative = search.relative_std()
-        exploring = relative >= self.waking.thresholds(search, self.retire_std)
+        flags = self._exploring_flags(search)
+        return torch.tensor(flags, dtype=torch.bool, device=search.device)
+
+    def _exploring_flags(self, search: PolicySearch) -> list[bool]:
+        """``_exploring`` on the host: K flags from the per-policy numbers (K of each, a
+        handful of calls where the same rule in tensor operations makes some twenty; the
+        same comparisons of the same float64 numbers)."""
+        k = search.num_policies
+        relative = search.relative_std().tolist()
+        std_limit = _per_policy(self.waking.thresholds(search, self.retire_std), k)
+        exploring = [r >= t for r, t in zip(relative, std_limit, strict=True)]  # (NaN: False)
         if self.retire_spread <= 0 or self.retire_std <= 0:
             return exploring
-        k = search.num_policies
-        judged = (search.archive.counts(k) >= search.M) & (relative < SPREAD_GATE)
-        limit = self.returns.fraction(self.waking.thresholds(search, self.retire_spread))
-        return exploring & ~(judged & (_spread(search) < limit))
+        archive, full = search.archive, search.M
+        counts = archive.counts(k).tolist()
+        high, low = archive.per_policy("amax", k).tolist(), archive.per_policy("amin", k).tolist()
+        thresholds = _per_policy(self.waking.thresholds(search, self.retire_spread), k)
+        return [
+            flag and not (n >= full and r < SPREAD_GATE and hi - lo < self.returns.fraction(t))
+            for flag, n, r, hi, lo, t in zip(
+                exploring, counts, relative, high, low, thresholds, strict=True
+            )
+        ]
 
     def refining(self, search: PolicySearch) -> Tensor:
         """``[K]`` the policies woken to refine: clusterings leave their samples out, as
@@ -500,7 +520,10 @@ class Retirement:
         """Retire the converged policies, then drop duplicates (see the module docstring)."""
         policies = search.policy_set
         if self.retire_std > 0:
-            policies.active = policies.active & self._exploring(search)
+            active = policies.active_flags()
+            flags = [a and e for a, e in zip(active, self._exploring_flags(search), strict=True)]
+            if tuple(flags) != active:  # (else the tensor stands, and what is memoised on it)
+                policies.active = torch.tensor(flags, dtype=torch.bool, device=search.device)
         if self.merge_radius <= 0 or search.num_policies < 2:
             return
         # Only an active policy a judges duplicates (near[a][b], and near[b][a] for an active
