@@ -76,14 +76,14 @@ def _spread(search: PolicySearch) -> Tensor:
     return archive.per_policy("amax", k) - archive.per_policy("amin", k)
 
 
-# A few returns far below all others (a crashed rollout among thousands) are left out of the
-# returns' range: the lowest returns told, at most OUTLIER_SHARE of them and OUTLIER_COUNT in
-# all, when a gap wider than OUTLIER_GAP times the range of the returns above it lies between
-# them and the rest. (One return of -1e6 among Vincent 2-D's returns in [-1, 1] made the
-# spread rule retire every policy at once, 1e-4 of a range of 1e6: of 51 optima converged to
-# 1e-4 in 2000 trials, 7 were.)
+# A few returns far below all others (crashed rollouts) are left out of the returns' range:
+# the lowest returns told, at most OUTLIER_SHARE of them (more are part of the task) and
+# OUTLIER_COUNT in all (what is kept to judge them), when a gap wider than OUTLIER_GAP times
+# the range of the returns above it lies between them and the rest. (One return of -1e6 among
+# Vincent 2-D's returns in [-1, 1] made the spread rule retire every policy at once, 1e-4 of
+# a range of 1e6: of 51 optima converged to 1e-4 in 2000 trials, 7 were.)
 OUTLIER_SHARE = 0.05
-OUTLIER_COUNT = 64
+OUTLIER_COUNT = 1024
 OUTLIER_GAP = 10.0
 
 
@@ -123,10 +123,10 @@ class ReturnRange:
     def _low(self) -> float:
         """The lowest return that is not an outlier: above the highest gap among the lowest
         (at most ``OUTLIER_SHARE`` of the returns told) wider than ``OUTLIER_GAP`` times
-        the range above it; the lowest told where there is none."""
+        the range above it, that range not empty; the lowest told where there is none."""
         lowest, high = self.lowest, self.high
         for i in range(self._allowed(), 0, -1):
-            if lowest[i] - lowest[i - 1] > OUTLIER_GAP * (high - lowest[i]):
+            if high > lowest[i] and lowest[i] - lowest[i - 1] > OUTLIER_GAP * (high - lowest[i]):
                 return lowest[i]
         return lowest[0]
 
