@@ -15,6 +15,7 @@ Each seed draws, from its own ``random.Random``:
 * half the time, a random value of every option (``DipoleOptions``), and in 15 % of the cases
   the paper's variant instead of the default one;
 * 1000, 3000 or 6000 trials, a box (−4, 4) or none, Σ_start = s·I with s in {1e-3, 1, 1e3};
+* in a quarter of the cases, crashed rollouts: a return of −1e6 at about 1 % of the θ asked;
 * checkpoints (``state_dict`` through ``torch.save``) at a quarter, half and three quarters of
   the trials, each loaded into a new ``Dipole`` built with another generator, which goes on.
 
@@ -67,6 +68,18 @@ def landscape(rng: random.Random, d: int):
         "sphere": lambda theta: -theta.square().sum(-1),
         "narrow": lambda theta: 1 - distance(theta).sqrt(),
     }[kind]
+
+
+def crashing(reward):
+    """``reward`` with a crashed rollout, a return of −1e6, at about 1 % of the θ asked (a
+    fixed function of θ: the same θ crashes again)."""
+
+    def crashed(theta):
+        returns = reward(theta)
+        crash = torch.frac(1e3 * theta.sum(-1).abs()) < 0.01
+        return torch.where(crash, torch.full_like(returns, -1e6), returns)
+
+    return crashed
 
 
 def options(rng: random.Random) -> tuple[str, dict]:
@@ -130,6 +143,8 @@ def run_case(seed: int, budget: int | None = None) -> str | None:
     bounds = (-4.0 * torch.ones(d, dtype=torch.float64), 4.0 * torch.ones(d, dtype=torch.float64))
     sigma = rng.choice([1e-3, 1.0, 1e3]) * torch.eye(d, dtype=torch.float64)
     theta0 = torch.full((d,), rng.uniform(-1, 1), dtype=torch.float64)
+    if rng.random() < 0.25:  # (drawn last: earlier seeds keep their cases)
+        kind, reward = f"{kind}+crashes", crashing(reward)
     if variant == "paper":
         changes = {k: v for k, v in changes.items() if k in ("M", "alpha", "m", "regularization",
                                                              "settle")}  # fmt: skip
