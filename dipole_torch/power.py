@@ -167,6 +167,17 @@ def _host_rows(
     return sets, [row for row, policy in enumerate(owner) if policy < 0 or chosen[row]]
 
 
+def _host_weights(returns: list[float], floor: float) -> list[float]:
+    """``PolicyImportance.slot_weights`` of one policy's kept ``returns`` (best first), in
+    Python scalars: each mapped onto [floor, 1] by their min–max, all 1 when they are equal."""
+    low, high = min(returns), max(returns)
+    spread = high - low
+    if not spread > 0:
+        return [1.0] * len(returns)
+    scale = max(spread, _TINY)
+    return [min(max((value - low) / scale, floor), 1.0) for value in returns]
+
+
 def _padded(rows: list[list], size: int, fill) -> list:
     """``rows`` flattened, each row padded to ``size`` with ``fill``."""
     return [item for row in rows for item in (*row, *[fill] * (size - len(row)))]
@@ -208,10 +219,13 @@ class PolicyImportance:
     """Each policy keeps its own best M samples; eq. 7 weighs them by the min–max map of its
     own M returns (best 1, worst ``reward_floor``)."""
 
+    # Whether ``power_step`` takes ``_host_step`` on the CPU (at most ``HOST_ROWS`` samples).
+    has_host_path = True
+
     def power_step(self, search: PolicySearch) -> None:
         """Eq. 7 for every active policy on its importance set; the other samples policies
         own are dropped (samples of no policy, the scouts, are kept)."""
-        if self.host_weights is not None and _on_host(search.archive.owner):
+        if self.has_host_path and _on_host(search.archive.owner):
             self._host_step(search)
         else:
             self._tensor_step(search)
@@ -247,7 +261,7 @@ class PolicyImportance:
             for k in stepping:
                 slots = sets[k]
                 returns = [rewards[row] for row in slots]
-                weights += self.host_weights(returns, floor) + [0.0] * (size - len(slots))
+                weights += _host_weights(returns, floor) + [0.0] * (size - len(slots))
                 rows += slots + [slots[0]] * (size - len(slots))  # (padding: weight 0)
             at = torch.tensor(stepping, dtype=torch.long)
             index = torch.tensor(rows, dtype=torch.long).view(len(stepping), size)
@@ -259,17 +273,6 @@ class PolicyImportance:
             )
             policies.means = policies.means.index_put((at,), means)
         archive.keep(torch.tensor(kept, dtype=torch.long))
-
-    @staticmethod
-    def host_weights(returns: list[float], floor: float) -> list[float]:
-        """``slot_weights`` of one policy's kept ``returns`` (best first), in Python
-        scalars: each mapped onto [floor, 1] by their min–max, all 1 when they are equal."""
-        low, high = min(returns), max(returns)
-        spread = high - low
-        if not spread > 0:
-            return [1.0] * len(returns)
-        scale = max(spread, _TINY)
-        return [min(max((value - low) / scale, floor), 1.0) for value in returns]
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         """``[K, M]`` eq. 7's weights of the importance-set slots ``index`` (``valid`` marks
@@ -305,7 +308,7 @@ class GlobalImportance(PolicyImportance):
         super().power_step(search)
 
     # No host path: the weights come from the reward scale over all kept returns.
-    host_weights = None
+    has_host_path = False
 
     def slot_weights(self, search: PolicySearch, index: Tensor, valid: Tensor) -> Tensor:
         rewards = search.archive.rewards
