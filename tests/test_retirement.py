@@ -85,7 +85,7 @@ def test_a_policy_whose_kept_returns_agree_retires_before_its_exploration_is_sma
 
 
 def told_range(*batches):
-    from dipole_torch.mechanisms.retirement import ReturnRange
+    from dipole_torch.mechanisms.return_range import ReturnRange
 
     returns = ReturnRange()
     for batch in batches:
@@ -125,7 +125,7 @@ def test_the_range_keeps_a_low_tail_that_is_part_of_the_returns():
 
 
 def test_the_returns_range_resumes_and_forgets():
-    from dipole_torch.mechanisms.retirement import ReturnRange
+    from dipole_torch.mechanisms.return_range import ReturnRange
 
     bulk = torch.linspace(0.0, 1.0, 99, dtype=F64)
     returns = told_range(bulk, [-1e6])
