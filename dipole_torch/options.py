@@ -140,8 +140,8 @@ class DipoleOptions:
             (0: no policy is ever retired).
         retire_spread: also retire a policy exploring below a tenth of Σ_start's std once
             its M kept returns spread less than this fraction of the range of every return
-            told (a few returns far below the rest left out: a crashed rollout), in [0, 1]
-            (0: the std alone); lowered with ``retire_std`` at each wake. A
+            told (a few returns far below or above the rest left out: a crash, a glitch), in
+            [0, 1] (0: the std alone); lowered with ``retire_std`` at each wake. A
             broad optimum's returns flatten long before its exploration is small: its trials
             go to finding others, and a wake refines it later (see
             mechanisms.retirement).

@@ -84,6 +84,27 @@ def test_a_policy_whose_kept_returns_agree_retires_before_its_exploration_is_sma
     assert kept(off, 0.0, 0.05).retirement.converged(off).tolist() == [False]
 
 
+def test_a_glitch_a_policy_holds_is_left_out_of_its_spread():
+    # Its kept returns agree to 0.5e-4 but for one glitch (+1e6) that the returns' range
+    # leaves out: judged on the others, it retires by spread; with all the others equal it
+    # has no gain to show (a wake would not take it for one).
+    def holding_a_glitch(spread: float, left_out: bool):
+        opt = kept(started_dipole(2, two_optima), spread, 0.05)
+        glitch = torch.tensor([1e6], dtype=F64)
+        opt.archive.rewards = torch.cat([opt.archive.rewards[:-1], glitch])
+        # As told: returns 0 … 1, and the glitch left out of the range or not.
+        opt.retirement.returns.lowest = [0.0]
+        opt.retirement.returns.highest = [1e6, 1.0] if left_out else [1.0]
+        assert opt.retirement.returns.outliers_above == left_out
+        return opt
+
+    for left_out in (False, True):
+        opt = holding_a_glitch(0.5e-4, left_out)
+        assert opt.retirement.converged(opt).tolist() == [left_out]
+        opt = holding_a_glitch(0.0, left_out)
+        assert opt.retirement.waking.visible_gain(opt).tolist() == [not left_out]
+
+
 def told_range(*batches):
     from dipole_torch.mechanisms.return_range import ReturnRange
 
@@ -124,6 +145,63 @@ def test_the_range_keeps_a_low_tail_that_is_part_of_the_returns():
     assert told_range([1000.0] * 99, [20.0]).low == 20.0
 
 
+def test_a_return_far_above_all_others_is_left_out_of_the_range():
+    # One glitch (a simulation that blew up: +1e6) among 99 returns in [0, 1]: the range is
+    # the others' (0 … 1), as for a crash; with a crash as well, both are left out.
+    bulk = torch.linspace(0.0, 1.0, 99, dtype=F64)
+    returns = told_range(bulk[:50], [1e6], bulk[50:])
+    assert (returns.low, returns.high, returns.outliers_above) == (0.0, 1.0, True)
+    assert returns.leaves_out and returns.fraction(1e-4) == 1e-4
+    assert (told_range(bulk[:50], [1e6, -1e6], bulk[50:]).low, returns.high) == (0.0, 1.0)
+    both = told_range([1e6, -1e6], bulk)
+    assert (both.low, both.high) == (0.0, 1.0)
+    assert not told_range(bulk).leaves_out
+
+
+def test_the_range_keeps_a_success_far_above_the_returns_before_it():
+    bulk = torch.linspace(0.0, 1.0, 97, dtype=F64)
+    # A first success above returns that are all equal (a sparse reward) is the range.
+    assert told_range([0.0] * 99, [1.0]).high == 1.0
+    # Successes that are more than 5 % of the returns told are part of the task.
+    assert told_range(bulk[:19], [1e6] * 2).high == 1e6
+    # Returns 5 ranges above the rest (under OUTLIER_GAP = 10) stay in.
+    assert told_range(bulk, [6.0] * 3).high == 6.0
+
+
+def reference_cut(tail, other, allowed, sign):
+    """``return_range._cut`` as a plain loop over every candidate gap."""
+    for i in range(min(allowed, len(tail) - 1), 0, -1):
+        inward = sign * (other - tail[i])
+        if inward > 0 and sign * (tail[i] - tail[i - 1]) > 10.0 * inward:
+            return tail[i]
+    return tail[0]
+
+
+def test_the_cut_is_the_loop_over_every_gap():
+    # The shortcut (no gap can be wide enough) and the array path against the plain loop,
+    # on tails with outliers at several distances and in several tiers.
+    from dipole_torch.mechanisms.return_range import _cut
+
+    generator = torch.Generator().manual_seed(3)
+    for case in range(400):
+        n = int(torch.randint(1, 60, (1,), generator=generator))
+        values = torch.rand(n, generator=generator, dtype=F64)
+        other = float(values.max()) + float(torch.rand(1, generator=generator))
+        # Tiers of outliers, each a gap of 8 … 13 times its distance to the other end below
+        # the last (the rule's 10 in between) or, one case in four, far below.
+        for _ in range(int(torch.randint(0, 4, (1,), generator=generator))):
+            factor = 8.0 + 5.0 * float(torch.rand(1, generator=generator))
+            factor = 1e4 if case % 4 == 0 else factor
+            below = float(values.min()) - factor * (other - float(values.min()))
+            count = int(torch.randint(1, 4, (1,), generator=generator))
+            values = torch.cat([values, torch.full((count,), below, dtype=F64)])
+        allowed = int(torch.randint(0, values.numel(), (1,), generator=generator))
+        for sign in (1.0, -1.0):
+            tail = sorted((sign * values).tolist(), key=lambda v: sign * v)
+            end = sign * other
+            assert _cut(tail, end, allowed, sign) == reference_cut(tail, end, allowed, sign), case
+
+
 def test_the_returns_range_resumes_and_forgets():
     from dipole_torch.mechanisms.return_range import ReturnRange
 
@@ -133,18 +211,27 @@ def test_the_returns_range_resumes_and_forgets():
     resumed.load_state_dict(returns.state_dict())
     resumed.observe(torch.tensor([0.5], dtype=F64))
     returns.observe(torch.tensor([0.5], dtype=F64))
-    assert (resumed.low, resumed.high, resumed.lowest) == (
+    assert (resumed.low, resumed.high, resumed.lowest, resumed.highest) == (
         returns.low,
         returns.high,
         returns.lowest,
+        returns.highest,
     )
     # A checkpoint from before outliers were left out: its range, nothing left out.
     old = ReturnRange()
     old.load_state_dict({"waking_low": -1e6, "waking_high": 1.0})
     old.observe(torch.tensor([0.5], dtype=F64))
     assert (old.low, old.high) == (-1e6, 1.0)
+    # One from before returns far above were: its high end stays (the returns that would
+    # judge it were not saved).
+    glitch = told_range(bulk, [1e6]).state_dict()
+    del glitch["highest_returns"]
+    old.load_state_dict({**glitch, "waking_high": 1e6})  # (what that version saved)
+    old.observe(torch.tensor([0.5], dtype=F64))
+    assert (old.low, old.high) == (0.0, 1e6)
     returns.forget()
-    assert (returns.low, returns.high, returns.told, returns.lowest) == (math.inf, -math.inf, 0, [])
+    assert (returns.low, returns.high, returns.told) == (math.inf, -math.inf, 0)
+    assert returns.lowest == returns.highest == []
 
 
 def vincent(theta):
@@ -153,8 +240,8 @@ def vincent(theta):
 
 
 def converged_optima(crash: float | None) -> int:
-    """Vincent 2-D, 1200 trials of the defaults (one told return replaced by ``crash``): the
-    policy means within 1e-4 of an optimum's value."""
+    """Vincent 2-D, 1200 trials of the defaults (one told return replaced by ``crash``, a
+    crash or a glitch): the policy means within 1e-4 of an optimum's value."""
     opt = Dipole(
         torch.full((2,), 5.125, dtype=F64),
         torch.eye(2, dtype=F64) * (9.75 / 4) ** 2,
@@ -178,6 +265,13 @@ def test_one_crashed_rollout_does_not_cost_the_policies_their_precision():
     clean = converged_optima(None)
     assert clean >= 6
     assert converged_optima(-1e6) >= clean - 1
+
+
+def test_one_glitch_does_not_cost_the_other_policies_their_precision():
+    # One return of +1e6 (a simulation that blew up): without leaving it out of the range
+    # none of the 10 optima converged; left out, 7 do. The policy that holds it stays on it
+    # (nothing it samples beats it) and takes trials until its exploration is small.
+    assert converged_optima(1e6) >= 5
 
 
 def test_the_spread_rule_scales_with_a_range_too_wide_to_subtract():

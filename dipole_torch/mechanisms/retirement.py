@@ -5,8 +5,8 @@ merging of duplicates, and the restart of a policy whose samples straddle two hi
   exploration std has shrunk below its threshold, at first ``retire_std`` times Σ_start's,
   or once its M kept returns spread less than its other threshold, at first
   ``retire_spread`` times the range of every return told (``ReturnRange``: a few returns
-  far below all others, a crashed rollout, left out); it stays among the policies, and
-  its trials go to the others.
+  far below or far above all others, a crashed rollout or a glitch, left out of it and of
+  the kept returns' spread); it stays among the policies, and its trials go to the others.
 * Waking (``refine``, ``refine_share``, ``refine_gate``, ``wake_while_active``;
   ``Waking``): once no policy is active (with ``wake_while_active``, also beside the
   policies found after every one had retired), the retired ones near the best return at the
@@ -71,9 +71,13 @@ def _per_policy(value: Tensor | float, k: int) -> list[float]:
     return value.tolist() if isinstance(value, Tensor) else [float(value)] * k
 
 
-def _spread(search: PolicySearch) -> Tensor:
-    """``[K]`` the spread (max − min) of each policy's kept returns."""
+def _spread(search: PolicySearch, returns: ReturnRange) -> Tensor:
+    """``[K]`` the spread (max − min) of each policy's kept returns; the outliers left out
+    of ``returns`` are left out of it too (a policy holding a glitch would otherwise spread
+    over the whole range: never flat, always a gain to show)."""
     archive, k = search.archive, search.num_policies
+    if returns.leaves_out:
+        return archive.spreads_within(k, returns.low, returns.high)
     return archive.per_policy("amax", k) - archive.per_policy("amin", k)
 
 
@@ -224,19 +228,25 @@ class Waking(NoWaking):
         std = policies.covariances.diagonal(dim1=-2, dim2=-1).sqrt()
         scale = policies.means.abs() + search.sigma_start.diagonal().sqrt()
         resolved = (std <= FINEST_STD * scale).all(-1)
-        flat = (_spread(search) == 0) & (search.archive.counts(search.num_policies) > 1)
+        counts = search.archive.counts(search.num_policies)
+        flat = (_spread(search, self.returns) == 0) & (counts > 1)
         return ~resolved & ~flat
 
     def visible_gain(self, search: PolicySearch) -> Tensor:
         """``[K]`` whether each policy's M kept returns spread at least
         ``VISIBLE_GAIN`` of the told returns' range."""
-        return _spread(search) >= self.returns.fraction(VISIBLE_GAIN)
+        return _spread(search, self.returns) >= self.returns.fraction(VISIBLE_GAIN)
 
     def near_best(self, search: PolicySearch, candidates: Tensor) -> Tensor:
         """``[K]`` the ``candidates [K]`` (bool) whose best kept return is within ``gate`` of
-        the told returns' range of the best candidate's."""
+        the told returns' range of the best candidate's (of the range's high end, where
+        returns far above it were left out: a glitch held by one policy does not keep the
+        others from their wakes)."""
         best = torch.where(candidates, search.policy_best_rewards, -math.inf)
-        return candidates & (best >= best.max() - self.returns.fraction(self.gate))
+        top = best.max()
+        if self.returns.outliers_above:
+            top = top.clamp(max=self.returns.high)
+        return candidates & (best >= top - self.returns.fraction(self.gate))
 
     def least_woken_near_best(self, search: PolicySearch, candidates: Tensor) -> Tensor:
         """``[K]`` of the ``candidates [K]`` (bool, at least one) near the best
@@ -400,12 +410,12 @@ class Retirement:
             return exploring
         archive, full = search.archive, search.M
         counts = archive.counts(k).tolist()
-        high, low = archive.per_policy("amax", k).tolist(), archive.per_policy("amin", k).tolist()
+        spreads = _spread(search, self.returns).tolist()
         thresholds = _per_policy(self.waking.thresholds(search, self.retire_spread), k)
         return [
-            flag and not (n >= full and r < SPREAD_GATE and hi - lo < self.returns.fraction(t))
-            for flag, n, r, hi, lo, t in zip(
-                exploring, counts, relative, high, low, thresholds, strict=True
+            flag and not (n >= full and r < SPREAD_GATE and s < self.returns.fraction(t))
+            for flag, n, r, s, t in zip(
+                exploring, counts, relative, spreads, thresholds, strict=True
             )
         ]
 
