@@ -16,6 +16,7 @@ Each seed draws, from its own ``random.Random``:
   the paper's variant instead of the default one;
 * 1000, 3000 or 6000 trials, a box (−4, 4) or none, Σ_start = s·I with s in {1e-3, 1, 1e3};
 * in a quarter of the cases, crashed rollouts: a return of −1e6 at about 1 % of the θ asked;
+  in a quarter, glitches: a return of +1e6 at about 0.5 % of them;
 * checkpoints (``state_dict`` through ``torch.save``) at a quarter, half and three quarters of
   the trials, each loaded into a new ``Dipole`` built with another generator, which goes on.
 
@@ -82,6 +83,18 @@ def crashing(reward):
     return crashed
 
 
+def glitching(reward):
+    """``reward`` with a glitch, a return of +1e6 (a simulation that blew up), at about 0.5 %
+    of the θ asked (a fixed function of θ)."""
+
+    def glitched(theta):
+        returns = reward(theta)
+        glitch = torch.frac(7e2 * theta.sum(-1).abs() + 0.5) < 0.005
+        return torch.where(glitch, torch.full_like(returns, 1e6), returns)
+
+    return glitched
+
+
 def options(rng: random.Random) -> tuple[str, dict]:
     """``("default" | "paper", option changes)``."""
     changes = {}
@@ -145,6 +158,8 @@ def run_case(seed: int, budget: int | None = None) -> str | None:
     theta0 = torch.full((d,), rng.uniform(-1, 1), dtype=torch.float64)
     if rng.random() < 0.25:  # (drawn last: earlier seeds keep their cases)
         kind, reward = f"{kind}+crashes", crashing(reward)
+    if rng.random() < 0.25:  # (drawn last, as above)
+        kind, reward = f"{kind}+glitches", glitching(reward)
     if variant == "paper":
         changes = {k: v for k, v in changes.items() if k in ("M", "alpha", "m", "regularization",
                                                              "settle")}  # fmt: skip
