@@ -74,16 +74,6 @@ class SampleArchive:
 
         return self._memo.get((reduce, num_policies), (self.owner, self.rewards), compute)
 
-    def spreads_within(self, num_policies: int, low: float, high: float) -> Tensor:
-        """``[K]`` the spread (max − min) of each policy's kept returns within [low, high],
-        those outside left out (0: none within). Not memoised (for runs told outliers)."""
-        inside = (self.rewards >= low) & (self.rewards <= high)
-        slots = torch.where(inside, self._slots(), 0)  # (slot 0: no policy, dropped below)
-        start = torch.full((num_policies + 1,), -math.inf, dtype=DTYPE, device=slots.device)
-        top = start.scatter_reduce(0, slots, self.rewards, "amax")[1:]
-        bottom = (-start).scatter_reduce(0, slots, self.rewards, "amin")[1:]
-        return torch.where(top >= bottom, top - bottom, 0.0)
-
     def counts(self, num_policies: int) -> Tensor:
         """``[K]`` the number of kept samples of each policy. Memoised: not to be written
         into."""

@@ -72,13 +72,16 @@ def _per_policy(value: Tensor | float, k: int) -> list[float]:
 
 
 def _spread(search: PolicySearch, returns: ReturnRange) -> Tensor:
-    """``[K]`` the spread (max − min) of each policy's kept returns; the outliers left out
-    of ``returns`` are left out of it too (a policy holding a glitch would otherwise spread
-    over the whole range: never flat, always a gain to show)."""
+    """``[K]`` the spread (max − min) of each policy's kept returns, an outlier that
+    ``returns`` leaves out counted as the range's end: a policy holding a glitch spreads no
+    wider than the range (not a million ranges), and one holding a success far above the
+    rest (left out while it is rare) still spreads from its other returns up to the range's
+    top, so that it is not judged flat."""
     archive, k = search.archive, search.num_policies
+    high, low = archive.per_policy("amax", k), archive.per_policy("amin", k)
     if returns.leaves_out:
-        return archive.spreads_within(k, returns.low, returns.high)
-    return archive.per_policy("amax", k) - archive.per_policy("amin", k)
+        high, low = returns.clamped(high), returns.clamped(low)
+    return high - low
 
 
 class NoWaking:
