@@ -84,13 +84,11 @@ def test_a_policy_whose_kept_returns_agree_retires_before_its_exploration_is_sma
     assert kept(off, 0.0, 0.05).retirement.converged(off).tolist() == [False]
 
 
-def holding(outlier: float, others: tuple[float, float], left_out: bool):
-    """One policy at 0.05 of Σ_start's std whose 5 kept returns are 4 from ``others`` (low,
-    high) and ``outlier``, among returns told over 0 … 1 with the outlier left out of that
-    range or not."""
+def holding(returns: list[float], outlier: float, left_out: bool):
+    """One policy at 0.05 of Σ_start's std with 5 kept ``returns``, among returns told over
+    0 … 1 and ``outlier``, left out of that range or not."""
     opt = kept(started_dipole(2, two_optima), 1.0, 0.05)
-    returns = torch.cat([torch.linspace(*others, 4, dtype=F64), torch.tensor([outlier])])
-    opt.archive.rewards = returns.to(F64)
+    opt.archive.rewards = torch.tensor(returns, dtype=F64)
     opt.retirement.returns.lowest = [0.0]
     opt.retirement.returns.highest = [outlier, 1.0] if left_out else [1.0]
     assert opt.retirement.returns.outliers_above == left_out
@@ -101,16 +99,50 @@ def test_an_outlier_a_policy_holds_counts_as_the_ranges_end_in_its_spread():
     # A glitch (+1e6) held by a policy whose other kept returns agree near the top of the
     # range: left out of the range, it counts as the range's top (1), and the policy's
     # returns agree to 1e-4 of it: it retires. Kept in, its spread is a million ranges.
+    near_top = [1.0 - 0.5e-4, 1.0 - 0.3e-4, 1.0 - 0.1e-4, 1.0, 1e6]
     for left_out in (False, True):
-        opt = holding(1e6, (1.0 - 0.5e-4, 1.0), left_out)
+        opt = holding(near_top, 1e6, left_out)
         assert opt.retirement.converged(opt).tolist() == [left_out]
     # A success far above the rest, left out while it is rare, is not a reason to judge
     # the policy that found it flat: its other returns agree (at 0.5), but it spreads from
     # them to the range's top, a gain to show.
     for left_out in (False, True):
-        opt = holding(1e6, (0.5, 0.5 + 1e-6), left_out)
+        opt = holding([0.5, 0.5, 0.5 + 1e-6, 0.5 + 1e-6, 1e6], 1e6, left_out)
         assert opt.retirement.converged(opt).tolist() == [False]
         assert opt.retirement.waking.visible_gain(opt).tolist() == [True]
+    # Nor once every kept return is such a success: judged on its own returns (2e-4 apart),
+    # not clamped to the range's top, where they would be flat and the policy would retire
+    # with no gain left to wake it for.
+    on_it = [1e6, 1e6 + 1e-4, 1e6 + 2e-4, 1e6 + 2e-4, 1e6 + 2e-4]
+    opt = holding(on_it, 1e6 + 2e-4, True)
+    assert opt.retirement.converged(opt).tolist() == [False]
+    assert opt.retirement.waking.visible_gain(opt).tolist() == [True]
+
+
+def step_landscape(theta):
+    """``[B]`` a success region (return 1 more) of radius 0.3 around (2, 2) on a broad bump of
+    height 0.01 at 0: the best point is the region's edge nearest 0."""
+    centre = torch.tensor([2.0, 2.0], dtype=F64)
+    bump = 0.01 * torch.exp(-theta.square().sum(-1) / 8)
+    return bump + ((theta - centre).norm(dim=-1) < 0.3).to(F64)
+
+
+def test_a_policy_that_finds_a_success_far_above_the_rest_goes_on_converging():
+    # The first successes are far above every return before them (1 against 0.01): left
+    # out of the range while they are rare. The policy on them converges to within 1e-7 of
+    # the best point in 1000 trials; judged flat on them (clamped to the range's top) it
+    # retired 2.5e-4 below it, never woken.
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        4.0 * torch.eye(2, dtype=F64),
+        bounds=(-4.0, 4.0),
+        generator=torch.Generator().manual_seed(3),
+    )
+    while opt.trials < 1000:
+        theta = opt.ask()
+        opt.tell(theta, step_landscape(theta))
+    best = 1.0 + 0.01 * math.exp(-((2 * math.sqrt(2) - 0.3) ** 2) / 8)
+    assert best - float(step_landscape(opt.policy_means).max()) < 1e-5
 
 
 def told_range(*batches):

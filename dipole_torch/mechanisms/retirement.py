@@ -72,15 +72,22 @@ def _per_policy(value: Tensor | float, k: int) -> list[float]:
 
 
 def _spread(search: PolicySearch, returns: ReturnRange) -> Tensor:
-    """``[K]`` the spread (max − min) of each policy's kept returns, an outlier that
-    ``returns`` leaves out counted as the range's end: a policy holding a glitch spreads no
-    wider than the range (not a million ranges), and one holding a success far above the
-    rest (left out while it is rare) still spreads from its other returns up to the range's
-    top, so that it is not judged flat."""
+    """``[K]`` the spread (max − min) of each policy's kept returns; where they straddle an
+    end of the range that ``returns`` leaves outliers beyond, the outliers count as that end.
+
+    A policy holding a glitch among returns in the range then spreads no wider than the range
+    (not a million ranges). A policy whose kept returns all lie beyond the range (it found a
+    success far above the rest, left out of the range while such returns are rare) is judged
+    on its own returns, finer than the range: clamped, they would be flat, and it would
+    retire on the success it had just found, never to be woken."""
     archive, k = search.archive, search.num_policies
     high, low = archive.per_policy("amax", k), archive.per_policy("amin", k)
     if returns.leaves_out:
-        high, low = returns.clamped(high), returns.clamped(low)
+        top, bottom = returns.high, returns.low
+        high, low = (
+            torch.where(low <= top, high.clamp(max=top), high),
+            torch.where(high >= bottom, low.clamp(min=bottom), low),
+        )
     return high - low
 
 

@@ -123,10 +123,6 @@ class ReturnRange:
         """Whether returns far below or far above the rest are left out."""
         return self.outliers_above or (bool(self.lowest) and self.low > self.lowest[0])
 
-    def clamped(self, values: Tensor) -> Tensor:
-        """``values`` (returns, any shape) clamped to the range."""
-        return values.clamp(self.low, self.high)
-
     def fraction(self, fraction: Tensor | float) -> Tensor | float:
         """``fraction`` (at most 1) of the range's width; 0 before any return, or while
         every return was equal."""
