@@ -5,8 +5,9 @@ merging of duplicates, and the restart of a policy whose samples straddle two hi
   exploration std has shrunk below its threshold, at first ``retire_std`` times Σ_start's,
   or once its M kept returns spread less than its other threshold, at first
   ``retire_spread`` times the range of every return told (``ReturnRange``: a few returns
-  far below or far above all others, a crashed rollout or a glitch, left out of it and of
-  the kept returns' spread); it stays among the policies, and its trials go to the others.
+  far below or far above all others, a crashed rollout or a glitch, left out; see
+  ``_spread`` for a policy that holds one); it stays among the policies, and its trials go
+  to the others.
 * Waking (``refine``, ``refine_share``, ``refine_gate``, ``wake_while_active``;
   ``Waking``): once no policy is active (with ``wake_while_active``, also beside the
   policies found after every one had retired), the retired ones near the best return at the
