@@ -131,9 +131,13 @@ class PolicySearch:
         trials: reward evaluations told so far (the x-axis of the paper's plots).
         iteration: tells after the first batch.
         policy_samples: trials spent on policy samples after the first batch.
-        last_rewards: ``[K]`` each policy's latest return: the returns of the latest told
-            batch's policy samples (the whole batch after the first tell), then, for each
-            policy that drew no sample in it, the mean return of its kept samples.
+        last_rewards: ``[K]`` each policy's latest return, for the curves of the paper's
+            figures (their max and mean): the returns of the latest told batch's policy
+            samples (the whole batch after the first tell), then, for each policy that drew
+            no sample in it, the mean return of its kept samples. In that order, and for the
+            policies of the batch's ask (the tell's clustering may add or drop some): not
+            row by row those of ``policy_means``, but after ``reevaluate``, where it is the
+            returns told. Per policy, row by row: ``policy_best_rewards``.
     """
 
     def __init__(
