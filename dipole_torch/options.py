@@ -146,11 +146,11 @@ class DipoleOptions:
             go to finding others, and a wake refines it later (see
             mechanisms.retirement).
         refine: once no policy is active, retired ones are woken with their threshold times
-            this, in [0, 1) (0: never woken); see mechanisms.retirement.Waking.
+            this, in [0, 1) (0: never woken); see mechanisms.waking.Waking.
         refine_share: a wake starts only while woken policies have taken less than this
             share of the trials since every policy first retired, in (0, 1); restarts
             (scouts) take the rest. A woken policy runs on to its next threshold, so the
-            share taken can exceed it (see mechanisms.retirement.Waking).
+            share taken can exceed it (see mechanisms.waking.Waking).
         refine_gate: a wake for a gain to show takes the retired policies whose best
             kept return is within this fraction of the returns' range of the best one's, in
             [0, 1] (1: every one); those further below are woken once these show no gain

@@ -1,4 +1,4 @@
-"""A converged policy keeps improving while trials remain (mechanisms.retirement.Waking): on
+"""A converged policy keeps improving while trials remain (mechanisms.waking.Waking): on
 a single narrow peak the returned policy reaches 1e-6 of the value range; retired policies
 are woken coarsest first, within their share of the trials, and not beyond what float64
 resolves."""

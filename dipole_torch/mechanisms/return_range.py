@@ -10,9 +10,14 @@ from __future__ import annotations
 
 import bisect
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from dipole_torch.archive import SampleArchive
 
 __all__ = ["OUTLIER_COUNT", "OUTLIER_GAP", "OUTLIER_SHARE", "ReturnRange"]
 
@@ -122,6 +127,26 @@ class ReturnRange:
     def leaves_out(self) -> bool:
         """Whether returns far below or far above the rest are left out."""
         return self.outliers_above or (bool(self.lowest) and self.low > self.lowest[0])
+
+    def kept_spreads(self, archive: SampleArchive, num_policies: int) -> Tensor:
+        """``[K]`` the spread (max − min) of each policy's kept returns in ``archive``;
+        where they straddle an end of the range beyond which outliers are left out, the
+        outliers count as that end.
+
+        A policy holding a glitch among returns in the range then spreads no wider than the
+        range (not a million ranges). A policy whose kept returns all lie beyond the range (it
+        found a success far above the rest, left out of the range while such returns are
+        rare) is judged on its own returns, finer than the range: clamped, they would be
+        flat, and it would retire on the success it had just found, never to be woken."""
+        high = archive.per_policy("amax", num_policies)
+        low = archive.per_policy("amin", num_policies)
+        if self.leaves_out:
+            top, bottom = self.high, self.low
+            high, low = (
+                torch.where(low <= top, high.clamp(max=top), high),
+                torch.where(high >= bottom, low.clamp(min=bottom), low),
+            )
+        return high - low
 
     def fraction(self, fraction: Tensor | float) -> Tensor | float:
         """``fraction`` (at most 1) of the range's width; 0 before any return, or while
