@@ -10,18 +10,22 @@ from torch import Tensor
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.memo import Memo
 
-__all__ = ["NO_POLICY", "PROBE", "SampleArchive"]
+__all__ = ["NO_POLICY", "PROBE", "REPEAT", "SampleArchive"]
 
 # Owner codes of told rows: k >= 0, a sample of policy k; NO_POLICY, a sample that belongs to
 # no policy yet (a scout); PROBE, an evaluation that is not a sample of any exploration
-# distribution (a hill-valley probe): it never enters the archive.
+# distribution (a hill-valley probe): it never enters the archive; REPEAT, a kept sample
+# evaluated again (``best_evaluations``): its return is averaged into that sample's.
 NO_POLICY = -1
 PROBE = -2
+REPEAT = -3
 
 
 class SampleArchive:
     """The kept samples: ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]`` (a policy
-    index, or ``NO_POLICY``), re-indexed together.
+    index, or ``NO_POLICY``), re-indexed together; ``evaluations [N]``, how many returns
+    each row's reward averages, is ``None`` while every row has one (a run that evaluates
+    no sample twice never builds it).
 
     Args:
         dim: D.
@@ -32,6 +36,7 @@ class SampleArchive:
         self.thetas = torch.empty(0, dim, dtype=DTYPE, device=device)
         self.rewards = torch.empty(0, dtype=DTYPE, device=device)
         self.owner = torch.empty(0, dtype=torch.long, device=device)
+        self.evaluations: Tensor | None = None
         self._memo = Memo()
 
     def __len__(self) -> int:
@@ -42,6 +47,8 @@ class SampleArchive:
         self.thetas = torch.cat((self.thetas, thetas))
         self.rewards = torch.cat((self.rewards, rewards))
         self.owner = torch.cat((self.owner, owner))
+        if self.evaluations is not None:
+            self.evaluations = torch.cat((self.evaluations, torch.ones_like(owner)))
 
     def keep(self, mask: Tensor) -> None:
         """Keep the samples ``mask`` (``[N]`` bool, or indices)."""
@@ -50,10 +57,39 @@ class SampleArchive:
             self.rewards[mask],
             self.owner[mask],
         )
+        if self.evaluations is not None:
+            self.evaluations = self.evaluations[mask]
 
     def replace(self, thetas: Tensor, rewards: Tensor, owner: Tensor) -> None:
-        """Forget every sample; keep these instead."""
+        """Forget every sample; keep these instead (one evaluation each)."""
         self.thetas, self.rewards, self.owner = thetas, rewards, owner
+        self.evaluations = None
+
+    def evaluation_counts(self) -> Tensor:
+        """``[N]`` how many returns each row's reward averages."""
+        if self.evaluations is None:
+            return torch.ones_like(self.owner)
+        return self.evaluations
+
+    def average_in(self, rows: Tensor, returns: Tensor) -> None:
+        """Average ``returns [R]``, new evaluations of the kept samples ``rows [R]``
+        (distinct row indices), into those samples' rewards. The tensors are replaced, not
+        written into (a tell's snapshot holds them)."""
+        counts = self.evaluation_counts()
+        n = counts[rows]
+        mean = (self.rewards[rows] * n + returns) / (n + 1)
+        self.rewards = self.rewards.index_put((rows,), mean)
+        self.evaluations = counts.index_put((rows,), n + 1)
+
+    def best_rows(self, policies: list[int]) -> list[int]:
+        """The row of each of ``policies``' best kept sample (the first of equal ones;
+        -1 for a policy that keeps none)."""
+        owner, rewards = self.host_lists()
+        best: dict[int, int] = {}
+        for row, (policy, value) in enumerate(zip(owner, rewards, strict=True)):
+            if policy >= 0 and (policy not in best or value > rewards[best[policy]]):
+                best[policy] = row
+        return [best.get(policy, -1) for policy in policies]
 
     # The per-policy reductions below are memoised (``Memo``): an iteration asks for each
     # policy's best return in several mechanisms, mostly while the archive stands still.
@@ -139,14 +175,18 @@ class SampleArchive:
         self.owner = torch.where(self.owner >= 0, new_index[self.owner.clamp_min(0)], self.owner)
 
     def state_dict(self, copy: bool = True) -> dict[str, Tensor]:
-        """``thetas``, ``rewards`` and ``owner``: copies, or (``copy=False``) the tensors
-        themselves, which the archive replaces and never writes into."""
+        """``thetas``, ``rewards``, ``owner`` and (once a sample was evaluated twice)
+        ``evaluations``: copies, or (``copy=False``) the tensors themselves, which the
+        archive replaces and never writes into."""
         state = {"thetas": self.thetas, "rewards": self.rewards, "owner": self.owner}
+        if self.evaluations is not None:
+            state["evaluations"] = self.evaluations
         return {key: value.clone() for key, value in state.items()} if copy else state
 
     def load_state_dict(self, state: dict, device: torch.device) -> None:
-        """Load ``thetas [N, D]``, ``rewards [N]`` and ``owner [N]``; raises ``ValueError``
-        naming the key whose shape or type does not fit."""
+        """Load ``thetas [N, D]``, ``rewards [N]``, ``owner [N]`` and, where the state has
+        them, ``evaluations [N]`` (≥ 1; absent: one each); raises ``ValueError`` naming the
+        key whose shape, type or values do not fit."""
         d = self.thetas.shape[1]
         thetas, rewards, owner = (state[key] for key in ("thetas", "rewards", "owner"))
         _check_tensor(thetas, "thetas", (None, d))
@@ -156,6 +196,13 @@ class SampleArchive:
         self.thetas = thetas.to(device=device, dtype=DTYPE)
         self.rewards = rewards.to(device=device, dtype=DTYPE)
         self.owner = owner.to(device=device, dtype=torch.long)
+        evaluations = state.get("evaluations")
+        if evaluations is not None:
+            _check_tensor(evaluations, "evaluations", (n,), integral=True)
+            if bool((evaluations < 1).any()):
+                raise ValueError("state_dict['evaluations'] must be >= 1 (returns averaged)")
+            evaluations = evaluations.to(device=device, dtype=torch.long)
+        self.evaluations = evaluations
 
 
 def _check_tensor(value, key: str, shape: tuple, integral: bool = False) -> None:

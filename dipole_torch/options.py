@@ -169,6 +169,11 @@ class DipoleOptions:
             optima are found, but on a landscape of many local optima (Shubert) the new
             policies stay on the local ones (docs: Niching).
         merge_radius: drop a policy within this many exploration stds of another (0: never).
+        best_evaluations: evaluations a sampled policy's best kept sample gets, one more at
+            each ask (its return the mean of them), before it is trusted (1: every return as
+            told; paper: 1). For noisy returns (a stochastic environment): the best of many
+            noisy returns is mostly the luckiest, and a policy judged against it converges
+            where the luck was (docs: Reliability, noisy returns).
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
             draws, exact too, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
     """
@@ -209,6 +214,7 @@ class DipoleOptions:
     wake_while_active: bool = False
     start_cap: float = 0.0
     merge_radius: float = 1.0
+    best_evaluations: int = 1
     auxiliary: str = "auto"
 
     def __post_init__(self) -> None:
@@ -398,5 +404,6 @@ _CHECKS = {
     "wake_while_active": check_flag,
     "start_cap": _non_negative,
     "merge_radius": _non_negative,
+    "best_evaluations": check_count,
     "auxiliary": _choice("auto", "fresh", "reuse"),
 }

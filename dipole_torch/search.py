@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from dipole_torch.archive import NO_POLICY, PROBE, SampleArchive
+from dipole_torch.archive import NO_POLICY, PROBE, REPEAT, SampleArchive
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.inputs import (
     Bounds,
@@ -45,7 +45,7 @@ from dipole_torch.validation import (
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
     from dipole_torch.gaussian_mixture import GaussianMixture
 
-__all__ = ["NO_POLICY", "PROBE", "PolicySearch", "TellBatch"]
+__all__ = ["NO_POLICY", "PROBE", "REPEAT", "PolicySearch", "TellBatch"]
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,8 @@ class TellBatch:
     to its first B rows.
 
     An ask lists its rows in groups (``_propose``): the policy samples, one per sampled
-    policy; then the scouts (``NO_POLICY``); then the probes (``PROBE``). The mechanisms
+    policy; then the scouts (``NO_POLICY``); then the probes (``PROBE``); then the kept
+    samples evaluated again (``REPEAT``, with ``best_evaluations``). The mechanisms
     take a group as a slice (``rewards[:batch.policy_rows]``), not through a boolean mask
     (a gather, several times the cost); ``policies`` lists the sampled policies on the
     host. Built from ``owner`` (one ``tolist``); rows out of that order are refused.
@@ -68,22 +69,26 @@ class TellBatch:
     cut: bool
     policies: tuple[int, ...] = field(init=False)  # owner[:policy_rows]
     sample_rows: int = field(init=False)  # the rows before the probes
+    probe_end: int = field(init=False)  # the rows before the repeats
 
     def __post_init__(self) -> None:
         owners = self.owner.tolist()
-        policy_rows = next((i for i, o in enumerate(owners) if o < 0), len(owners))
-        sample_rows = next(
-            (i for i in range(policy_rows, len(owners)) if owners[i] == PROBE), len(owners)
-        )
-        if any(o >= 0 for o in owners[policy_rows:]) or any(
-            o != PROBE for o in owners[sample_rows:]
+        n = len(owners)
+        policy_rows = next((i for i, o in enumerate(owners) if o < 0), n)
+        sample_rows = next((i for i in range(policy_rows, n) if owners[i] < NO_POLICY), n)
+        probe_end = next((i for i in range(sample_rows, n) if owners[i] == REPEAT), n)
+        if (
+            any(o != NO_POLICY for o in owners[policy_rows:sample_rows])
+            or any(o != PROBE for o in owners[sample_rows:probe_end])
+            or any(o != REPEAT for o in owners[probe_end:])
         ):
             raise ValueError(
-                f"a told batch lists its policy samples, then scouts, then probes; got owners "
-                f"{owners}"
+                f"a told batch lists its policy samples, then scouts, then probes, then "
+                f"repeated evaluations; got owners {owners}"
             )
         object.__setattr__(self, "policies", tuple(owners[:policy_rows]))
         object.__setattr__(self, "sample_rows", sample_rows)
+        object.__setattr__(self, "probe_end", probe_end)
 
     @property
     def policy_rows(self) -> int:
@@ -178,6 +183,10 @@ class PolicySearch:
         self._pending: Tensor | None = None
         self._pending_owner: Tensor | None = None
         self._pending_boxed = False  # the pending rows were projected by this ask (not loaded)
+        self._pending_repeats: Tensor | None = None  # the archive rows of the REPEAT rows
+        # Evaluations of a sampled policy's best kept sample before its return is trusted
+        # (1: every return is; a subclass sets it from its options).
+        self.best_evaluations = 1
 
     # ------------------------------------------------------------------ views
     @property
@@ -296,7 +305,12 @@ class PolicySearch:
     def batch_size(self) -> int:
         """Rows the next ``ask`` returns (before ``max_rows``): known before the draw,
         so a run can decide whether the next batch fits its trial budget."""
-        return self.n0 if not self.started else self._batch_size()
+        if not self.started:
+            return self.n0
+        size = self._batch_size()
+        if self.best_evaluations > 1:
+            size += len(self._repeat_rows(self._sampled_policies().tolist()))
+        return size
 
     def _batch_size(self) -> int:
         return int(self._sampled_policies().numel())
@@ -327,8 +341,11 @@ class PolicySearch:
             owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
         else:
             theta, owner = self._propose()
+        repeats = None
+        if self.started and self.best_evaluations > 1:
+            theta, owner, repeats = self._with_repeats(theta, owner)
         theta = into_box(self.box, theta)
-        self._pending, self._pending_owner = theta, owner
+        self._pending, self._pending_owner, self._pending_repeats = theta, owner, repeats
         self._pending_boxed = True
         if max_rows is not None:
             theta = theta[: int(max_rows)]
@@ -337,8 +354,37 @@ class PolicySearch:
     @property
     def asked_owner(self) -> Tensor | None:
         """``[B]`` the policy each row of the pending ask belongs to (−1: a scout of no
-        policy yet, −2: a probe; see ``dipole_torch.archive``)."""
+        policy yet, −2: a probe, −3: a kept sample evaluated again; see
+        ``dipole_torch.archive``)."""
         return self._pending_owner
+
+    def _repeat_rows(self, policies: list[int]) -> list[int]:
+        """The archive rows to evaluate again at this ask: each of the sampled ``policies``'
+        best kept sample while it averages fewer than ``best_evaluations`` returns.
+
+        With noisy returns the best of a policy's samples is mostly the luckiest: kept as
+        told, it is seldom beaten, the success rule shrinks the exploration around it and
+        the policy converges where the luck was. Averaged over a few evaluations, a lucky
+        return falls back among the others (the re-evaluation of the elite in noisy
+        evolution strategies)."""
+        counts = self.archive.evaluation_counts().tolist()
+        rows = [row for row in self.archive.best_rows(policies) if row >= 0]
+        return [row for row in rows if counts[row] < self.best_evaluations]
+
+    def _with_repeats(self, theta: Tensor, owner: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The proposal ``theta [B, D]``, ``owner [B]`` followed by the repeated
+        evaluations (owner ``REPEAT``), and their archive rows (None: none)."""
+        policies = [policy for policy in owner.tolist() if policy >= 0]
+        rows = self._repeat_rows(policies)
+        if not rows:
+            return theta, owner, None
+        index = torch.tensor(rows, dtype=torch.long, device=self.device)
+        repeat_owner = torch.full((len(rows),), REPEAT, dtype=torch.long, device=self.device)
+        return (
+            torch.cat((theta, self.archive.thetas[index])),
+            torch.cat((owner, repeat_owner)),
+            index,
+        )
 
     def _propose(self) -> tuple[Tensor, Tensor]:
         """The next batch after the first: ``(theta [B, D], owner [B])``. Here one sample
@@ -399,7 +445,11 @@ class PolicySearch:
         first = not self.started
         owner = self._pending_owner[: theta.shape[0]]
         batch = TellBatch(theta, rewards, owner, cut=owner.shape[0] < self._pending_owner.shape[0])
-        self._pending = self._pending_owner = None
+        repeats = self._pending_repeats
+        self._pending = self._pending_owner = self._pending_repeats = None
+        if batch.probe_end < theta.shape[0]:  # before the samples are judged against them
+            told = theta.shape[0] - batch.probe_end
+            self.archive.average_in(repeats[:told], rewards[batch.probe_end :])
         self._observe(batch)
         policy_rows = batch.policy_rows
         self.policy_samples += policy_rows if not first else 0
@@ -488,7 +538,7 @@ class PolicySearch:
         best = int(returns.argmax())
         self._best_theta = self.policy_means[best].clone()
         self._best_reward = float(returns[best])
-        self._pending = self._pending_owner = None
+        self._pending = self._pending_owner = self._pending_repeats = None
         self._restart(hurt)
 
     def _restart(self, rows: Tensor) -> None:
@@ -543,6 +593,7 @@ class PolicySearch:
             "best_reward": self._best_reward,
             "pending": kept(self._pending),
             "pending_owner": kept(self._pending_owner),
+            "pending_repeats": kept(self._pending_repeats),
             "generator": self.generator.get_state(),
             "kind": type(self).__name__,
         }
@@ -615,8 +666,25 @@ class PolicySearch:
             self._pending = None if pending is None else pending.to(self.device)
             self._pending_owner = None if owner is None else owner.to(self.device)
             self._pending_boxed = False  # (rows from elsewhere: checked against the box)
+            self._pending_repeats = _pending_repeats(state, owner, len(self.archive), self.device)
             self.generator.set_state(state["generator"])
         except KeyError as missing:
             raise ValueError(
                 f"state_dict has no {missing} (not a {type(self).__name__}'s)"
             ) from None
+
+
+def _pending_repeats(
+    state: dict, owner: Tensor | None, rows: int, device: torch.device
+) -> Tensor | None:
+    """The archive rows of a loaded pending ask's ``REPEAT`` rows (``state`` of a version
+    without them: none), checked against the ask and the archive's ``rows``."""
+    repeats = state.get("pending_repeats")
+    asked = 0 if owner is None else int((owner == REPEAT).sum())
+    held = 0 if repeats is None else int(repeats.numel())
+    if held != asked or (held and not (0 <= int(repeats.min()) and int(repeats.max()) < rows)):
+        raise ValueError(
+            f"state_dict['pending_repeats'] must list the archive row (0 <= row < {rows}) of "
+            f"each of the pending ask's {asked} repeated evaluations, got {held}"
+        )
+    return None if repeats is None else repeats.to(device=device, dtype=torch.long)

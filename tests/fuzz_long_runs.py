@@ -16,7 +16,8 @@ Each seed draws, from its own ``random.Random``:
   the paper's variant instead of the default one;
 * 1000, 3000 or 6000 trials, a box (−4, 4) or none, Σ_start = s·I with s in {1e-3, 1, 1e3};
 * in a quarter of the cases, crashed rollouts: a return of −1e6 at about 1 % of the θ asked;
-  in a quarter, glitches: a return of +1e6 at about 0.5 % of them;
+  in a quarter, glitches: a return of +1e6 at about 0.5 % of them; in a quarter, noisy
+  returns (Gaussian, std 1 % of |return| + 0.01), with ``best_evaluations`` 1, 2 or 4;
 * checkpoints (``state_dict`` through ``torch.save``) at a quarter, half and three quarters of
   the trials, each loaded into a new ``Dipole`` built with another generator, which goes on.
 
@@ -95,6 +96,18 @@ def glitching(reward):
     return glitched
 
 
+def noisy(reward, seed: int):
+    """``reward`` with Gaussian noise of std 0.01·(|return| + 1) (its own seeded stream)."""
+    generator = torch.Generator().manual_seed(seed)
+
+    def noised(theta):
+        returns = reward(theta)
+        noise = torch.randn(returns.shape, generator=generator, dtype=returns.dtype)
+        return returns + 0.01 * (returns.abs() + 1.0) * noise
+
+    return noised
+
+
 def options(rng: random.Random) -> tuple[str, dict]:
     """``("default" | "paper", option changes)``."""
     changes = {}
@@ -160,9 +173,12 @@ def run_case(seed: int, budget: int | None = None) -> str | None:
         kind, reward = f"{kind}+crashes", crashing(reward)
     if rng.random() < 0.25:  # (drawn last, as above)
         kind, reward = f"{kind}+glitches", glitching(reward)
+    if rng.random() < 0.25:  # (drawn last, as above)
+        kind, reward = f"{kind}+noise", noisy(reward, seed)
+        changes["best_evaluations"] = rng.choice([1, 2, 4])
     if variant == "paper":
-        changes = {k: v for k, v in changes.items() if k in ("M", "alpha", "m", "regularization",
-                                                             "settle")}  # fmt: skip
+        kept = ("M", "alpha", "m", "regularization", "settle", "best_evaluations")
+        changes = {k: v for k, v in changes.items() if k in kept}
         if kind in ("negative", "sphere", "narrow"):
             changes["reward_range"] = None
     case = (f"d={d} landscape={kind} variant={variant} trials={trials} box={box} "

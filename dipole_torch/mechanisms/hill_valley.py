@@ -158,7 +158,7 @@ class HillValley(NoVetting):
         if batch.cut:
             self.forget()
         # The probes come last. (A copy: the told returns may be the caller's tensor.)
-        self.probe_rewards = batch.rewards[batch.sample_rows :].clone()
+        self.probe_rewards = batch.rewards[batch.sample_rows : batch.probe_end].clone()
 
     def forget(self) -> None:
         """Empty the queues of tests (candidates and pairs) and their probes (a cut ask, or

@@ -93,6 +93,8 @@ ADDED_KEYS = {
     "algo.optimizer.start_cap": 0.0,
     # Runs from before the success rule's target rate was an option (Igel et al.'s 2/11).
     "algo.optimizer.success_target": IGEL_TARGET_SUCCESS,
+    # Runs from before a kept sample could be evaluated again (every return trusted).
+    "algo.optimizer.best_evaluations": 1,
 }
 # Keys an algorithm's config no longer has, whose values changed nothing in its runs: a
 # checkpoint that has them resumes without them (``algo=dipole_paper`` listed the options
