@@ -45,6 +45,9 @@ class Power(PolicySearch):
         reward_floor: smallest reward weight, in (0, 1).
         exploration_decay: per-iteration factor on the covariance, in (0, 1].
         min_exploration: floor of that factor, in (0, 1].
+        best_evaluations: evaluations the best kept sample gets, one more at each ask, before
+            its return (the mean of them) is trusted (1: every return as told); for noisy
+            returns, as ``DipoleOptions.best_evaluations``.
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
         bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or
@@ -64,8 +67,10 @@ class Power(PolicySearch):
         min_exploration: float = 1e-2,
         generator: torch.Generator | None = None,
         bounds: Bounds = None,
+        best_evaluations: int = 1,
     ):
         check_count(M, "M (importance-set size)")
+        check_count(best_evaluations, "best_evaluations")
         check_count(n0, "n0 (initial samples)", optional=True)
         for name, value in (
             ("reward_floor", reward_floor),
@@ -84,12 +89,14 @@ class Power(PolicySearch):
         self.importance = GlobalImportance()
         self.exploration_decay = float(exploration_decay)
         self.min_exploration = float(min_exploration)
+        self.best_evaluations = int(best_evaluations)
 
     def _settings(self) -> dict[str, Any]:
         return {
             **super()._settings(),
             "exploration_decay": self.exploration_decay,
             "min_exploration": self.min_exploration,
+            "best_evaluations": self.best_evaluations,
         }
 
     def _after_initial_batch(self) -> None:

@@ -9,7 +9,7 @@ import statistics
 import pytest
 import torch
 
-from dipole_torch import Dipole
+from dipole_torch import Dipole, Power
 from dipole_torch.archive import REPEAT
 
 F64 = torch.float64
@@ -80,8 +80,20 @@ def test_the_best_kept_sample_is_evaluated_again_and_its_returns_averaged():
         assert int(opt.archive.evaluation_counts()[hit]) == 2
 
 
-def test_a_sample_is_evaluated_at_most_best_evaluations_times():
-    opt = make(best_evaluations=3)
+def make_power(seed: int = 0, **options) -> Power:
+    return Power(
+        torch.zeros(2, dtype=F64),
+        1.0,
+        bounds=(-5.0, 5.0),
+        exploration_decay=0.98,
+        generator=torch.Generator().manual_seed(seed),
+        **options,
+    )
+
+
+@pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])
+def test_a_sample_is_evaluated_at_most_best_evaluations_times(build):
+    opt = build(best_evaluations=3)
     times: dict[tuple, int] = {}
     while opt.trials < 300:
         theta = opt.ask()
@@ -104,10 +116,11 @@ def test_the_default_evaluates_every_sample_once_and_draws_as_before():
     assert opt.archive.evaluations is None  # never built
 
 
+@pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])
 @pytest.mark.parametrize("value", [0, -1, 1.5, True, "2"])
-def test_a_bad_best_evaluations_is_refused_naming_it(value):
+def test_a_bad_best_evaluations_is_refused_naming_it(build, value):
     with pytest.raises((ValueError, TypeError), match="best_evaluations"):
-        make(best_evaluations=value)
+        build(best_evaluations=value)
 
 
 def test_batch_size_counts_the_repeats():
