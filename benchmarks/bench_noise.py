@@ -22,7 +22,7 @@ below the top, s = 10 % ten times it. "Found" is judged on the noise-free f, as 
   pynmmso's defaults), each returning what it returns there (every restart's best evaluated
   point, chosen on noisy returns; every swarm's mode).
 
-Printed: per dimension, optima found summed over the landscapes (k = 2, 4, 8; 3 seeds) at
+Printed: per dimension, optima found summed over the landscapes (k = 2, 4, 8; 6 seeds) at
 each noise level, and the returned solutions. Everything goes to ``--json`` (default
 ``docs/figures/noise.json``).
 """
@@ -54,7 +54,7 @@ from bench_multioptima import (  # noqa: E402
 
 DIMS = (2, 5)
 KS = (2, 4, 8)
-SEEDS = 3
+SEEDS = 6
 BUDGET = 2000
 NOISE = (0.0, 0.01, 0.03, 0.1)
 REPEATS = 4  # evaluations averaged by "DIPOLE (mean of 4)"
