@@ -47,7 +47,8 @@ class Power(PolicySearch):
         min_exploration: floor of that factor, in (0, 1].
         best_evaluations: evaluations the best kept sample gets, one more at each ask, before
             its return (the mean of them) is trusted (1: every return as told); for noisy
-            returns, as ``DipoleOptions.best_evaluations``.
+            returns, as ``DipoleOptions.best_evaluations`` (deterministic returns detected
+            the same way).
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator).
         bounds: ``(lower, upper)`` box of the parameters (numbers, lists of D numbers or

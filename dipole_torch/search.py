@@ -45,7 +45,11 @@ from dipole_torch.validation import (
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
     from dipole_torch.gaussian_mixture import GaussianMixture
 
-__all__ = ["NO_POLICY", "PROBE", "REPEAT", "PolicySearch", "TellBatch"]
+__all__ = ["DETERMINISTIC_REPEATS", "NO_POLICY", "PROBE", "REPEAT", "PolicySearch", "TellBatch"]
+
+# Repeated evaluations in a row, each exactly the return it repeats, after which the returns
+# are taken to be deterministic and no sample is evaluated again (``best_evaluations``).
+DETERMINISTIC_REPEATS = 3
 
 
 @dataclass(frozen=True)
@@ -187,6 +191,10 @@ class PolicySearch:
         # Evaluations of a sampled policy's best kept sample before its return is trusted
         # (1: every return is; a subclass sets it from its options).
         self.best_evaluations = 1
+        # Repeated evaluations in a row that returned exactly the return they repeat, and
+        # whether one ever did not (see _repeat_rows).
+        self.identical_repeats = 0
+        self.noisy_returns = False
 
     # ------------------------------------------------------------------ views
     @property
@@ -366,7 +374,15 @@ class PolicySearch:
         told, it is seldom beaten, the success rule shrinks the exploration around it and
         the policy converges where the luck was. Averaged over a few evaluations, a lucky
         return falls back among the others (the re-evaluation of the elite in noisy
-        evolution strategies)."""
+        evolution strategies).
+
+        Once ``DETERMINISTIC_REPEATS`` repeats in a row have returned exactly the returns they
+        repeat, and none ever differed, the returns are taken to be deterministic and no
+        sample is evaluated again: ``best_evaluations`` then costs a deterministic task those
+        few trials. (Returns of a few discrete values, a success or a failure, can repeat by
+        chance: there, a run may stop repeating early.)"""
+        if not self.noisy_returns and self.identical_repeats >= DETERMINISTIC_REPEATS:
+            return []
         counts = self.archive.evaluation_counts().tolist()
         rows = [row for row in self.archive.best_rows(policies) if row >= 0]
         return [row for row in rows if counts[row] < self.best_evaluations]
@@ -449,7 +465,7 @@ class PolicySearch:
         self._pending = self._pending_owner = self._pending_repeats = None
         if batch.probe_end < theta.shape[0]:  # before the samples are judged against them
             told = theta.shape[0] - batch.probe_end
-            self.archive.average_in(repeats[:told], rewards[batch.probe_end :])
+            self._average_in(repeats[:told], rewards[batch.probe_end :])
         self._observe(batch)
         policy_rows = batch.policy_rows
         self.policy_samples += policy_rows if not first else 0
@@ -483,6 +499,16 @@ class PolicySearch:
             self._iterate()
 
     # Hooks of the subclasses.
+    def _average_in(self, rows: Tensor, returns: Tensor) -> None:
+        """The repeated evaluations ``returns [R]`` of the kept samples ``rows [R]``: counted
+        as identical to the returns they repeat or not, then averaged in."""
+        same = (returns == self.archive.rewards[rows]).tolist()
+        if all(same):
+            self.identical_repeats += len(same)
+        else:
+            self.noisy_returns = True
+        self.archive.average_in(rows, returns)
+
     def _observe(self, batch: TellBatch) -> None:
         """The told batch, before its samples enter the archive."""
 
@@ -594,6 +620,8 @@ class PolicySearch:
             "pending": kept(self._pending),
             "pending_owner": kept(self._pending_owner),
             "pending_repeats": kept(self._pending_repeats),
+            "identical_repeats": self.identical_repeats,
+            "noisy_returns": self.noisy_returns,
             "generator": self.generator.get_state(),
             "kind": type(self).__name__,
         }
@@ -667,6 +695,9 @@ class PolicySearch:
             self._pending_owner = None if owner is None else owner.to(self.device)
             self._pending_boxed = False  # (rows from elsewhere: checked against the box)
             self._pending_repeats = _pending_repeats(state, owner, len(self.archive), self.device)
+            # (States from before repeated evaluations: none made.)
+            self.identical_repeats = int(state.get("identical_repeats", 0))
+            self.noisy_returns = bool(state.get("noisy_returns", False))
             self.generator.set_state(state["generator"])
         except KeyError as missing:
             raise ValueError(

@@ -11,6 +11,7 @@ import torch
 
 from dipole_torch import Dipole, Power
 from dipole_torch.archive import REPEAT
+from dipole_torch.search import DETERMINISTIC_REPEATS
 
 F64 = torch.float64
 PEAK = torch.tensor([1.3, -2.1], dtype=F64)
@@ -19,6 +20,18 @@ PEAK = torch.tensor([1.3, -2.1], dtype=F64)
 def cone(theta: torch.Tensor) -> torch.Tensor:
     """``[B]`` a sharp peak of height 1 at PEAK (slope 1: the value falls linearly)."""
     return torch.exp(-(theta.to(F64) - PEAK).norm(dim=-1))
+
+
+class NoisyCone:
+    """``cone`` with Gaussian noise of std ``noise`` on every return (its own stream)."""
+
+    def __init__(self, noise: float = 0.03, seed: int = 100):
+        self.noise = noise
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def __call__(self, theta: torch.Tensor) -> torch.Tensor:
+        value = cone(theta)
+        return value + self.noise * torch.randn(value.shape, generator=self.generator, dtype=F64)
 
 
 def make(seed: int = 0, **options) -> Dipole:
@@ -34,12 +47,11 @@ def make(seed: int = 0, **options) -> Dipole:
 def noisy_run(seed: int, best_evaluations: int, trials: int = 1500, noise: float = 0.03):
     """A run on the cone with Gaussian return noise of std ``noise`` (3 % of its height);
     the distance of the nearest final policy mean to the peak."""
-    generator = torch.Generator().manual_seed(100 + seed)
+    reward = NoisyCone(noise, 100 + seed)
     opt = make(seed, best_evaluations=best_evaluations)
     while opt.trials < trials:
         theta = opt.ask(max_rows=trials - opt.trials)
-        value = cone(theta)
-        opt.tell(theta, value + noise * torch.randn(value.shape, generator=generator, dtype=F64))
+        opt.tell(theta, reward(theta))
     return float((opt.policy_means - PEAK).norm(dim=-1).min())
 
 
@@ -93,18 +105,32 @@ def make_power(seed: int = 0, **options) -> Power:
 
 @pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])
 def test_a_sample_is_evaluated_at_most_best_evaluations_times(build):
-    opt = build(best_evaluations=3)
+    opt, reward = build(best_evaluations=3), NoisyCone()
     times: dict[tuple, int] = {}
     while opt.trials < 300:
         theta = opt.ask()
         for row in (opt.asked_owner == REPEAT).nonzero().squeeze(-1).tolist():
             key = tuple(theta[row].tolist())
             times[key] = times.get(key, 0) + 1
-        opt.tell(theta, cone(theta))
-    assert times, "no sample was evaluated again"
+        opt.tell(theta, reward(theta))
+    assert opt.noisy_returns
+    assert len(times) > 5, "few samples were evaluated again"
     assert max(times.values()) == 2  # told once as a sample, then twice more
     counts = opt.archive.evaluation_counts()
     assert int(counts.max()) <= 3 and int(counts.min()) >= 1
+
+
+@pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])
+def test_deterministic_returns_are_evaluated_again_only_a_few_times(build):
+    """Returns that repeat exactly: after DETERMINISTIC_REPEATS repeats, none more."""
+    opt = build(best_evaluations=4)
+    repeats = 0
+    while opt.trials < 300:
+        theta = opt.ask()
+        repeats += int((opt.asked_owner == REPEAT).sum())
+        opt.tell(theta, cone(theta))
+    assert DETERMINISTIC_REPEATS <= repeats <= DETERMINISTIC_REPEATS + 3  # (one ask's few)
+    assert opt.identical_repeats == repeats and not opt.noisy_returns
 
 
 def test_the_default_evaluates_every_sample_once_and_draws_as_before():
@@ -135,21 +161,21 @@ def test_batch_size_counts_the_repeats():
 def test_a_cut_ask_tells_the_repeats_it_holds():
     """Telling the first rows of an ask, up to its first repeat, averages that repeat in
     and leaves the rest as they were."""
-    opt = make(best_evaluations=4)
+    opt, reward = make(best_evaluations=4), NoisyCone()
     theta = opt.ask()
-    opt.tell(theta, cone(theta))
+    opt.tell(theta, reward(theta))
     cuts = 0
     for _ in range(40):
         theta = opt.ask()
         repeats = (opt.asked_owner == REPEAT).nonzero().squeeze(-1).tolist()
         if not repeats:
-            opt.tell(theta, cone(theta))
+            opt.tell(theta, reward(theta))
             continue
         first = repeats[0]
         counts = opt.archive.evaluation_counts()
         row = int((opt.archive.thetas == theta[first]).all(-1).nonzero()[0])
         was = int(counts[row])
-        opt.tell(theta[: first + 1], cone(theta[: first + 1]))
+        opt.tell(theta[: first + 1], reward(theta[: first + 1]))
         cuts += 1
         hit = (opt.archive.thetas == theta[first]).all(-1).nonzero().squeeze(-1)
         if hit.numel():  # (unless the tell's iteration let the sample go)
@@ -158,29 +184,31 @@ def test_a_cut_ask_tells_the_repeats_it_holds():
 
 
 def test_a_pending_ask_with_repeats_resumes_exactly():
-    opt = make(seed=3, best_evaluations=3)
-    for _ in range(12):
-        theta = opt.ask()
-        opt.tell(theta, cone(theta))
+    opt, reward = make(seed=3, best_evaluations=3), NoisyCone()
     theta = opt.ask()
-    assert bool((opt.asked_owner == REPEAT).any())
+    while opt.trials < 40 or not bool((opt.asked_owner == REPEAT).any()):
+        opt.tell(theta, reward(theta))
+        theta = opt.ask()
     state = opt.state_dict()
     resumed = make(seed=3, best_evaluations=3)
     resumed.load_state_dict(state)
+    assert resumed.noisy_returns and resumed.identical_repeats == opt.identical_repeats
+    generator_state = reward.generator.get_state()
     for run in (opt, resumed):
-        run.tell(theta, cone(theta))
+        reward.generator.set_state(generator_state)  # the same noise for both
+        run.tell(theta, reward(theta))
         for _ in range(10):
             rows = run.ask()
-            run.tell(rows, cone(rows))
+            run.tell(rows, reward(rows))
     assert torch.equal(opt.policy_means, resumed.policy_means)
     assert torch.equal(opt.archive.evaluation_counts(), resumed.archive.evaluation_counts())
 
 
 def test_a_state_whose_repeats_do_not_fit_its_ask_is_refused():
-    opt = make(best_evaluations=3)
+    opt, reward = make(best_evaluations=3), NoisyCone()
     theta = opt.ask()
     while not bool((opt.asked_owner == REPEAT).any()):
-        opt.tell(theta, cone(theta))
+        opt.tell(theta, reward(theta))
         theta = opt.ask()
     state = opt.state_dict()
     bad = dict(state, pending_repeats=None)
