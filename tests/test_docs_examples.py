@@ -455,6 +455,30 @@ def viapoint_qd_rows() -> list[str]:
     return rows
 
 
+def noise_rows() -> list[str]:
+    """The noisy-returns table, from docs/figures/noise.json: per method, the optima found
+    at each noise level, one cell a dimension."""
+    data = json.loads((FIGURES / "noise.json").read_text())
+    config, summary = data["config"], data["summary"]
+    names = {
+        "DIPOLE": "DIPOLE (`best_evaluations=1`, the default)",
+        "DIPOLE (best ×2)": "DIPOLE, `best_evaluations=2`",
+        "DIPOLE (best ×4)": "DIPOLE, `best_evaluations=4`",
+        "DIPOLE (mean of 4)": "DIPOLE, every θ evaluated 4 times and the mean told",
+        "IPOP-CMA-ES": "IPOP-CMA-ES",
+        "NMMSO": "NMMSO",
+    }
+    return [
+        f"| {name} | "
+        + " | ".join(
+            " / ".join(str(summary[f"D={d} {method} noise={s}"]) for s in config["noise"])
+            for d in config["dims"]
+        )
+        + " |"
+        for method, name in names.items()
+    ]
+
+
 def shown(page: Path) -> set[str]:
     """The table rows of a page, bold marks removed."""
     return {
@@ -475,6 +499,7 @@ def shown(page: Path) -> set[str]:
         ("benchmarks/niching.md", lambda: niching_rows("niching_more.json")),
         ("benchmarks/precision.md", precision_rows),
         ("benchmarks/precision.md", viapoint_qd_rows),
+        ("reliability.md", noise_rows),
     ],
 )
 def test_the_benchmark_pages_show_the_numbers_of_the_json(page, rows):
