@@ -174,8 +174,9 @@ class DipoleOptions:
             told; paper: 1). For noisy returns (a stochastic environment): the best of many
             noisy returns is mostly the luckiest, and a policy judged against it converges
             where the luck was (docs: Reliability, noisy returns). Once 3 repeats in a row
-            return exactly the returns they repeat (``DETERMINISTIC_REPEATS``), the returns
-            are taken to be deterministic and none is repeated again.
+            return the returns they repeat (to 1e-6 of them: ``DETERMINISTIC_REPEATS``,
+            ``REPEAT_RTOL``), the returns are taken to be deterministic and none is repeated
+            again.
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
             draws, exact too, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
     """

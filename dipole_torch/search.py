@@ -45,11 +45,23 @@ from dipole_torch.validation import (
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
     from dipole_torch.gaussian_mixture import GaussianMixture
 
-__all__ = ["DETERMINISTIC_REPEATS", "NO_POLICY", "PROBE", "REPEAT", "PolicySearch", "TellBatch"]
+__all__ = [
+    "DETERMINISTIC_REPEATS",
+    "NO_POLICY",
+    "PROBE",
+    "REPEAT",
+    "REPEAT_RTOL",
+    "PolicySearch",
+    "TellBatch",
+]
 
 # Repeated evaluations in a row, each exactly the return it repeats, after which the returns
 # are taken to be deterministic and no sample is evaluated again (``best_evaluations``).
 DETERMINISTIC_REPEATS = 3
+# Relative difference within which a repeated return counts as the return it repeats: a
+# deterministic simulator in float32 whose reductions run in another order at each call (on
+# a GPU) returns values that differ in their last bits, about 1e-7 of them.
+REPEAT_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -376,11 +388,12 @@ class PolicySearch:
         return falls back among the others (the re-evaluation of the elite in noisy
         evolution strategies).
 
-        Once ``DETERMINISTIC_REPEATS`` repeats in a row have returned exactly the returns they
-        repeat, and none ever differed, the returns are taken to be deterministic and no
-        sample is evaluated again: ``best_evaluations`` then costs a deterministic task those
-        few trials. (Returns of a few discrete values, a success or a failure, can repeat by
-        chance: there, a run may stop repeating early.)"""
+        Once ``DETERMINISTIC_REPEATS`` repeats in a row have returned the returns they repeat
+        (to a relative ``REPEAT_RTOL``), and none ever differed, the returns are taken to be
+        deterministic and no sample is evaluated again: ``best_evaluations`` then costs a
+        deterministic task those few trials. (Returns of a few discrete values, a success or
+        a failure, can repeat by chance: there, a run may stop repeating early; noise below
+        ``REPEAT_RTOL`` of the return is taken for none.)"""
         if not self.noisy_returns and self.identical_repeats >= DETERMINISTIC_REPEATS:
             return []
         counts = self.archive.evaluation_counts().tolist()
@@ -501,8 +514,10 @@ class PolicySearch:
     # Hooks of the subclasses.
     def _average_in(self, rows: Tensor, returns: Tensor) -> None:
         """The repeated evaluations ``returns [R]`` of the kept samples ``rows [R]``: counted
-        as identical to the returns they repeat or not, then averaged in."""
-        same = (returns == self.archive.rewards[rows]).tolist()
+        as the same as the returns they repeat (to ``REPEAT_RTOL``) or not, then averaged
+        in."""
+        kept = self.archive.rewards[rows]
+        same = torch.isclose(returns.to(kept.dtype), kept, rtol=REPEAT_RTOL, atol=0.0).tolist()
         if all(same):
             self.identical_repeats += len(same)
         else:

@@ -221,3 +221,19 @@ def test_a_state_whose_repeats_do_not_fit_its_ask_is_refused():
     bad = dict(state, evaluations=torch.zeros_like(state["owner"]))
     with pytest.raises(ValueError, match="evaluations"):
         make(best_evaluations=3).load_state_dict(bad)
+
+
+@pytest.mark.parametrize(("relative", "noisy"), [(1e-8, False), (1e-4, True)])
+def test_returns_that_differ_in_their_last_bits_count_as_deterministic(relative, noisy):
+    """A float32 simulator whose reductions run in another order at each call repeats its
+    returns to about 1e-7: below REPEAT_RTOL they count as the same; noise above it does
+    not."""
+    opt = make(best_evaluations=4)
+    generator = torch.Generator().manual_seed(0)
+    while opt.trials < 300:
+        theta = opt.ask()
+        value = cone(theta)
+        jitter = torch.randn(value.shape, generator=generator, dtype=F64)
+        opt.tell(theta, value * (1 + relative * jitter))
+    assert opt.noisy_returns == noisy
+    assert (opt.identical_repeats >= DETERMINISTIC_REPEATS) == (not noisy)
