@@ -55,8 +55,8 @@ __all__ = [
     "TellBatch",
 ]
 
-# Repeated evaluations in a row, each exactly the return it repeats, after which the returns
-# are taken to be deterministic and no sample is evaluated again (``best_evaluations``).
+# Repeated evaluations in a row, each the return it repeats (to REPEAT_RTOL), after which
+# the returns are taken to be deterministic and none is evaluated again (best_evaluations).
 DETERMINISTIC_REPEATS = 3
 # Relative difference within which a repeated return counts as the return it repeats: a
 # deterministic simulator in float32 whose reductions run in another order at each call (on
@@ -203,8 +203,8 @@ class PolicySearch:
         # Evaluations of a sampled policy's best kept sample before its return is trusted
         # (1: every return is; a subclass sets it from its options).
         self.best_evaluations = 1
-        # Repeated evaluations in a row that returned exactly the return they repeat, and
-        # whether one ever did not (see _repeat_rows).
+        # Repeated evaluations in a row that returned the return they repeat, and whether one
+        # ever did not (see _repeat_rows).
         self.identical_repeats = 0
         self.noisy_returns = False
 
@@ -511,7 +511,6 @@ class PolicySearch:
             self.iteration += 1
             self._iterate()
 
-    # Hooks of the subclasses.
     def _average_in(self, rows: Tensor, returns: Tensor) -> None:
         """The repeated evaluations ``returns [R]`` of the kept samples ``rows [R]``: counted
         as the same as the returns they repeat (to ``REPEAT_RTOL``) or not, then averaged
@@ -524,6 +523,7 @@ class PolicySearch:
             self.noisy_returns = True
         self.archive.average_in(rows, returns)
 
+    # Hooks of the subclasses.
     def _observe(self, batch: TellBatch) -> None:
         """The told batch, before its samples enter the archive."""
 
