@@ -49,7 +49,7 @@ def train(cfg: DictConfig) -> dict:
     from dipole_torch.checkpoint import CheckpointError
     from dipole_torch.training import board, checks, console, resume, run_directory
     from dipole_torch.training.block import block_the_route
-    from dipole_torch.training.results import policy_summary, write_results
+    from dipole_torch.training.results import policy_summary, repeat_summary, write_results
     from dipole_torch.training.signals import StopRequest
 
     with checks.reported():
@@ -178,6 +178,7 @@ def train(cfg: DictConfig) -> dict:
             "best_reward": best_reward,
             "best_theta": best_theta.tolist(),
             "policies": policy_summary(task, optimizer),
+            **repeat_summary(optimizer),
             **({"block": blocked} if blocked is not None else {}),
             "history": {key: [row[key] for row in history] for key in history[0]}
             if history

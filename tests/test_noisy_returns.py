@@ -237,3 +237,23 @@ def test_returns_that_differ_in_their_last_bits_count_as_deterministic(relative,
         opt.tell(theta, value * (1 + relative * jitter))
     assert opt.noisy_returns == noisy
     assert (opt.identical_repeats >= DETERMINISTIC_REPEATS) == (not noisy)
+
+
+def test_train_py_reports_what_the_repeats_found_the_returns_to_be():
+    from dipole_torch.training.console import summary
+    from dipole_torch.training.results import repeat_summary
+
+    assert repeat_summary(make()) == {}
+    found = {}
+    for name, reward in (("deterministic", cone), ("noisy", NoisyCone())):
+        opt = make(best_evaluations=4)
+        assert repeat_summary(opt)["repeats"]["returns"] == "undecided"
+        while opt.trials < 100:
+            theta = opt.ask()
+            opt.tell(theta, reward(theta))
+        found[name] = repeat_summary(opt)["repeats"]
+        results = {"best_reward": 1.0, "trials": 100, "trial_budget": 100, "policies": []}
+        text = summary("dipole", "cone", results | repeat_summary(opt), "out")
+        assert f"returns {name}:" in text
+    assert found["deterministic"]["returns"] == "deterministic"
+    assert found["noisy"] == {"best_evaluations": 4, "returns": "noisy", "identical_repeats": 0}

@@ -78,5 +78,16 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
     for policy in sorted(policies, key=lambda p: -p["return_of_mean"]):
         described = policy["description"] or f"return {_number(policy['return_of_mean'])}"
         lines.append(f"  policy {policy['id']}: {described}")
+    repeats = results.get("repeats")
+    if repeats is not None:
+        lines.append(
+            f"returns {repeats['returns']}: "
+            + {
+                "noisy": f"each policy's best sample evaluated up to "
+                f"{repeats['best_evaluations']} times",
+                "deterministic": "repeated evaluations returned the same, none since",
+                "undecided": "too few repeated evaluations to tell",
+            }[repeats["returns"]]
+        )
     lines.append(f"outputs in {out}")
     return "\n".join(lines)

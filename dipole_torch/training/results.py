@@ -9,8 +9,9 @@ import torch
 
 from dipole_torch import Dipole
 from dipole_torch.checkpoint import atomic_save, atomic_write_text
+from dipole_torch.search import DETERMINISTIC_REPEATS
 
-__all__ = ["policy_summary", "write_results"]
+__all__ = ["policy_summary", "repeat_summary", "write_results"]
 
 
 def policy_summary(task, optimizer) -> list[dict]:
@@ -33,6 +34,28 @@ def policy_summary(task, optimizer) -> list[dict]:
         }
         for k in range(optimizer.num_policies)
     ]
+
+
+def repeat_summary(optimizer) -> dict:
+    """With ``best_evaluations`` > 1: ``{"repeats": {...}}``, what the repeated evaluations
+    found the returns to be (``"noisy"``, ``"deterministic"``, or ``"undecided"`` while too
+    few repeats were told); ``{}`` otherwise."""
+    evaluations = optimizer.best_evaluations
+    if evaluations <= 1:
+        return {}
+    if optimizer.noisy_returns:
+        returns = "noisy"
+    elif optimizer.identical_repeats >= DETERMINISTIC_REPEATS:
+        returns = "deterministic"
+    else:
+        returns = "undecided"
+    return {
+        "repeats": {
+            "best_evaluations": evaluations,
+            "returns": returns,
+            "identical_repeats": optimizer.identical_repeats,
+        }
+    }
 
 
 def write_results(out: Path, results: dict, optimizer) -> None:
