@@ -21,6 +21,11 @@ below the top, s = 10 % ten times it. "Found" is judged on the noise-free f, as 
 * **IPOP-CMA-ES** and **NMMSO**: as in ``bench_multioptima`` (pycma's restarts at 1e-3·σ0,
   pynmmso's defaults), each returning what it returns there (every restart's best evaluated
   point, chosen on noisy returns; every swarm's mode).
+* **UH-IPOP-CMA-ES**: the same restarts with pycma's own noise handling (``NoiseHandler``,
+  Hansen et al. 2009's uncertainty handling: it re-evaluates a few solutions each iteration,
+  measures the rank changes and raises σ and the evaluations a solution gets, up to 30),
+  every evaluation counted; returned: each restart's final mean (pycma's ``xfavorite``, its
+  estimate under noise), the running one's included.
 
 Printed: per dimension, optima found summed over the landscapes (k = 2, 4, 8; 6 seeds) at
 each noise level, and the returned solutions. Everything goes to ``--json`` (default
@@ -30,6 +35,7 @@ each noise level, and the returned solutions. Everything goes to ``--json`` (def
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -41,7 +47,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_multioptima import (  # noqa: E402
+    CMA_TOLX,
+    DTYPE,
     Landscape,
+    _cma_box,
+    _global_rngs,
     case_seeds,
     make_landscape,
     run_dipole,
@@ -78,6 +88,59 @@ class NoisyLandscape:
         return value + self.noise * noise
 
 
+class _BudgetSpent(Exception):
+    pass
+
+
+def run_uh_ipop_cmaes(problem, budgets: Sequence[int], seed: int):
+    """IPOP-CMA-ES with pycma's ``NoiseHandler`` (UH-CMA-ES) on ``problem``'s box, until
+    ``budgets[-1]`` evaluations (one budget: the snapshot is the end). Returned: each
+    restart's final mean."""
+    import warnings
+
+    import cma
+    import numpy as np
+
+    (budget,) = budgets
+    d = problem.dim
+    bounds, sigma0, stds, searched = _cma_box(problem)
+    lower, upper = np.array(bounds[0]), np.array(bounds[1])
+    rng = np.random.default_rng(seed)
+    popsize = 4 + int(3 * math.log(searched))
+    used = 0
+
+    def f(x) -> float:  # one evaluation, negated (pycma minimises)
+        nonlocal used
+        if used >= budget:
+            raise _BudgetSpent
+        used += 1
+        return -float(problem(torch.as_tensor(np.asarray(x)[None, :d], dtype=DTYPE))[0])
+
+    means: list[np.ndarray] = []
+    with _global_rngs(seed), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for restart in range(10**6):
+            options = {
+                "bounds": bounds, "popsize": popsize * 2**restart,
+                "seed": int(rng.integers(1, 2**31 - 1)), "verbose": -9, "verb_log": 0,
+                "verb_disp": 0, "tolx": CMA_TOLX * sigma0, "tolfun": 0.0, "tolfunhist": 0.0,
+            }  # fmt: skip
+            if stds is not None:
+                options["CMA_stds"] = stds
+            es = cma.CMAEvolutionStrategy(rng.uniform(lower, upper, searched), sigma0, options)
+            noise = cma.NoiseHandler(es.N, maxevals=[1, 1, 30])
+            try:
+                while not es.stop():
+                    solutions, fit = es.ask_and_eval(f, evaluations=noise.evaluations)
+                    es.tell(solutions, fit)
+                    es.sigma *= noise(solutions, fit, f, es.ask)
+            except _BudgetSpent:
+                means.append(np.array(es.result.xfavorite)[:d])
+                break
+            means.append(np.array(es.result.xfavorite)[:d])
+    return {budget: (torch.as_tensor(np.array(means), dtype=DTYPE).reshape(-1, d), budget)}
+
+
 def _dipole(**options) -> Callable:
     return lambda problem, budgets, seed: run_dipole(problem, budgets, seed, **options)
 
@@ -89,6 +152,7 @@ METHODS: dict[str, tuple[Callable, int]] = {
     "DIPOLE (best ×4)": (_dipole(best_evaluations=4), 1),
     "DIPOLE (mean of 4)": (_dipole(), REPEATS),
     "IPOP-CMA-ES": (run_ipop_cmaes, 1),
+    "UH-IPOP-CMA-ES": (run_uh_ipop_cmaes, 1),
     "NMMSO": (run_nmmso, 1),
 }
 

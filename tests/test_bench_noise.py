@@ -24,3 +24,20 @@ def test_a_case_is_judged_on_the_noise_free_landscape():
     assert case["k"] == 2 and 0 <= case["found"] <= 2 and case["returned"] >= 1
     averaged = bench.run_case(2, 2, 0, 0.01, "DIPOLE (mean of 4)", 300)
     assert averaged["returned"] >= 1
+
+
+def test_the_noise_handling_cma_es_stays_within_the_budget_and_returns_its_means():
+    pytest.importorskip("cma")
+    landscape = bench_multioptima.make_landscape(2, 2, seed=5)
+    calls = []
+
+    def counted(theta):
+        calls.append(theta.shape[0])
+        return landscape(theta)
+
+    counted.lower, counted.upper, counted.dim = landscape.lower, landscape.upper, 2
+    snapshots = bench.run_uh_ipop_cmaes(counted, [400], seed=0)
+    means, trials = snapshots[400]
+    assert sum(calls) == 400 == trials
+    assert means.shape[1] == 2 and means.shape[0] >= 1
+    assert bool(((means >= -5) & (means <= 5)).all())

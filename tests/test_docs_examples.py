@@ -466,6 +466,7 @@ def noise_rows() -> list[str]:
         "DIPOLE (best ×4)": "DIPOLE, `best_evaluations=4`",
         "DIPOLE (mean of 4)": "DIPOLE, every θ evaluated 4 times and the mean told",
         "IPOP-CMA-ES": "IPOP-CMA-ES",
+        "UH-IPOP-CMA-ES": "IPOP-CMA-ES with pycma's noise handling (UH-CMA-ES)",
         "NMMSO": "NMMSO",
     }
     return [
