@@ -107,7 +107,7 @@ class Dipole(PolicySearch):
             generator, bounds,
         )  # fmt: skip
         self.options = options
-        self.best_evaluations = options.best_evaluations
+        self.repeats.evaluations = options.best_evaluations
         d = self.dim
         self.cluster_every = options.M if options.cluster_every is None else options.cluster_every
         self.prior_df = float(d + 3 if options.prior_df is None else options.prior_df)

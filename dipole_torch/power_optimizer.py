@@ -90,14 +90,14 @@ class Power(PolicySearch):
         self.importance = GlobalImportance()
         self.exploration_decay = float(exploration_decay)
         self.min_exploration = float(min_exploration)
-        self.best_evaluations = int(best_evaluations)
+        self.repeats.evaluations = int(best_evaluations)
 
     def _settings(self) -> dict[str, Any]:
         return {
             **super()._settings(),
             "exploration_decay": self.exploration_decay,
             "min_exploration": self.min_exploration,
-            "best_evaluations": self.best_evaluations,
+            "best_evaluations": self.repeats.evaluations,
         }
 
     def _after_initial_batch(self) -> None:

@@ -30,6 +30,7 @@ from dipole_torch.inputs import (
     told_as_asked,
 )
 from dipole_torch.policy_set import PolicySet
+from dipole_torch.repeats import RepeatedEvaluations
 from dipole_torch.result import SearchResult
 from dipole_torch.reward import RewardRange, check_rewards, make_reward_scale
 from dipole_torch.sampling import draw_gaussian
@@ -45,23 +46,7 @@ from dipole_torch.validation import (
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
     from dipole_torch.gaussian_mixture import GaussianMixture
 
-__all__ = [
-    "DETERMINISTIC_REPEATS",
-    "NO_POLICY",
-    "PROBE",
-    "REPEAT",
-    "REPEAT_RTOL",
-    "PolicySearch",
-    "TellBatch",
-]
-
-# Repeated evaluations in a row, each the return it repeats (to REPEAT_RTOL), after which
-# the returns are taken to be deterministic and none is evaluated again (best_evaluations).
-DETERMINISTIC_REPEATS = 3
-# Relative difference within which a repeated return counts as the return it repeats: a
-# deterministic simulator in float32 whose reductions run in another order at each call (on
-# a GPU) returns values that differ in their last bits, about 1e-7 of them.
-REPEAT_RTOL = 1e-6
+__all__ = ["NO_POLICY", "PROBE", "REPEAT", "PolicySearch", "TellBatch"]
 
 
 @dataclass(frozen=True)
@@ -199,14 +184,8 @@ class PolicySearch:
         self._pending: Tensor | None = None
         self._pending_owner: Tensor | None = None
         self._pending_boxed = False  # the pending rows were projected by this ask (not loaded)
-        self._pending_repeats: Tensor | None = None  # the archive rows of the REPEAT rows
-        # Evaluations of a sampled policy's best kept sample before its return is trusted
-        # (1: every return is; a subclass sets it from its options).
-        self.best_evaluations = 1
-        # Repeated evaluations in a row that returned the return they repeat, and whether one
-        # ever did not (see _repeat_rows).
-        self.identical_repeats = 0
-        self.noisy_returns = False
+        # Kept samples evaluated again (a subclass sets their number from its options).
+        self.repeats = RepeatedEvaluations()
 
     # ------------------------------------------------------------------ views
     @property
@@ -328,8 +307,8 @@ class PolicySearch:
         if not self.started:
             return self.n0
         size = self._batch_size()
-        if self.best_evaluations > 1:
-            size += len(self._repeat_rows(self._sampled_policies().tolist()))
+        if self.repeats.evaluations > 1:
+            size += len(self.repeats.rows(self.archive, self._sampled_policies().tolist()))
         return size
 
     def _batch_size(self) -> int:
@@ -361,11 +340,11 @@ class PolicySearch:
             owner = torch.zeros(self.n0, dtype=torch.long, device=self.device)
         else:
             theta, owner = self._propose()
-        repeats = None
-        if self.started and self.best_evaluations > 1:
-            theta, owner, repeats = self._with_repeats(theta, owner)
+        self.repeats.pending = None
+        if self.started and self.repeats.evaluations > 1:
+            theta, owner = self.repeats.extend(self.archive, theta, owner)
         theta = into_box(self.box, theta)
-        self._pending, self._pending_owner, self._pending_repeats = theta, owner, repeats
+        self._pending, self._pending_owner = theta, owner
         self._pending_boxed = True
         if max_rows is not None:
             theta = theta[: int(max_rows)]
@@ -377,43 +356,6 @@ class PolicySearch:
         policy yet, −2: a probe, −3: a kept sample evaluated again; see
         ``dipole_torch.archive``)."""
         return self._pending_owner
-
-    def _repeat_rows(self, policies: list[int]) -> list[int]:
-        """The archive rows to evaluate again at this ask: each of the sampled ``policies``'
-        best kept sample while it averages fewer than ``best_evaluations`` returns.
-
-        With noisy returns the best of a policy's samples is mostly the luckiest: kept as
-        told, it is seldom beaten, the success rule shrinks the exploration around it and
-        the policy converges where the luck was. Averaged over a few evaluations, a lucky
-        return falls back among the others (the re-evaluation of the elite in noisy
-        evolution strategies).
-
-        Once ``DETERMINISTIC_REPEATS`` repeats in a row have returned the returns they repeat
-        (to a relative ``REPEAT_RTOL``), and none ever differed, the returns are taken to be
-        deterministic and no sample is evaluated again: ``best_evaluations`` then costs a
-        deterministic task those few trials. (Returns of a few discrete values, a success or
-        a failure, can repeat by chance: there, a run may stop repeating early; noise below
-        ``REPEAT_RTOL`` of the return is taken for none.)"""
-        if not self.noisy_returns and self.identical_repeats >= DETERMINISTIC_REPEATS:
-            return []
-        counts = self.archive.evaluation_counts().tolist()
-        rows = [row for row in self.archive.best_rows(policies) if row >= 0]
-        return [row for row in rows if counts[row] < self.best_evaluations]
-
-    def _with_repeats(self, theta: Tensor, owner: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        """The proposal ``theta [B, D]``, ``owner [B]`` followed by the repeated
-        evaluations (owner ``REPEAT``), and their archive rows (None: none)."""
-        policies = [policy for policy in owner.tolist() if policy >= 0]
-        rows = self._repeat_rows(policies)
-        if not rows:
-            return theta, owner, None
-        index = torch.tensor(rows, dtype=torch.long, device=self.device)
-        repeat_owner = torch.full((len(rows),), REPEAT, dtype=torch.long, device=self.device)
-        return (
-            torch.cat((theta, self.archive.thetas[index])),
-            torch.cat((owner, repeat_owner)),
-            index,
-        )
 
     def _propose(self) -> tuple[Tensor, Tensor]:
         """The next batch after the first: ``(theta [B, D], owner [B])``. Here one sample
@@ -474,11 +416,9 @@ class PolicySearch:
         first = not self.started
         owner = self._pending_owner[: theta.shape[0]]
         batch = TellBatch(theta, rewards, owner, cut=owner.shape[0] < self._pending_owner.shape[0])
-        repeats = self._pending_repeats
-        self._pending = self._pending_owner = self._pending_repeats = None
-        if batch.probe_end < theta.shape[0]:  # before the samples are judged against them
-            told = theta.shape[0] - batch.probe_end
-            self._average_in(repeats[:told], rewards[batch.probe_end :])
+        self._pending = self._pending_owner = None
+        if self.repeats.pending is not None:  # before the samples are judged against them
+            self.repeats.tell(self.archive, rewards[batch.probe_end :])
         self._observe(batch)
         policy_rows = batch.policy_rows
         self.policy_samples += policy_rows if not first else 0
@@ -510,18 +450,6 @@ class PolicySearch:
         else:
             self.iteration += 1
             self._iterate()
-
-    def _average_in(self, rows: Tensor, returns: Tensor) -> None:
-        """The repeated evaluations ``returns [R]`` of the kept samples ``rows [R]``: counted
-        as the same as the returns they repeat (to ``REPEAT_RTOL``) or not, then averaged
-        in."""
-        kept = self.archive.rewards[rows]
-        same = torch.isclose(returns.to(kept.dtype), kept, rtol=REPEAT_RTOL, atol=0.0).tolist()
-        if all(same):
-            self.identical_repeats += len(same)
-        else:
-            self.noisy_returns = True
-        self.archive.average_in(rows, returns)
 
     # Hooks of the subclasses.
     def _observe(self, batch: TellBatch) -> None:
@@ -579,7 +507,7 @@ class PolicySearch:
         best = int(returns.argmax())
         self._best_theta = self.policy_means[best].clone()
         self._best_reward = float(returns[best])
-        self._pending = self._pending_owner = self._pending_repeats = None
+        self._pending = self._pending_owner = self.repeats.pending = None
         self._restart(hurt)
 
     def _restart(self, rows: Tensor) -> None:
@@ -634,9 +562,7 @@ class PolicySearch:
             "best_reward": self._best_reward,
             "pending": kept(self._pending),
             "pending_owner": kept(self._pending_owner),
-            "pending_repeats": kept(self._pending_repeats),
-            "identical_repeats": self.identical_repeats,
-            "noisy_returns": self.noisy_returns,
+            **self.repeats.state_dict(copy),
             "generator": self.generator.get_state(),
             "kind": type(self).__name__,
         }
@@ -709,28 +635,9 @@ class PolicySearch:
             self._pending = None if pending is None else pending.to(self.device)
             self._pending_owner = None if owner is None else owner.to(self.device)
             self._pending_boxed = False  # (rows from elsewhere: checked against the box)
-            self._pending_repeats = _pending_repeats(state, owner, len(self.archive), self.device)
-            # (States from before repeated evaluations: none made.)
-            self.identical_repeats = int(state.get("identical_repeats", 0))
-            self.noisy_returns = bool(state.get("noisy_returns", False))
+            self.repeats.load_state_dict(state, owner, len(self.archive), self.device)
             self.generator.set_state(state["generator"])
         except KeyError as missing:
             raise ValueError(
                 f"state_dict has no {missing} (not a {type(self).__name__}'s)"
             ) from None
-
-
-def _pending_repeats(
-    state: dict, owner: Tensor | None, rows: int, device: torch.device
-) -> Tensor | None:
-    """The archive rows of a loaded pending ask's ``REPEAT`` rows (``state`` of a version
-    without them: none), checked against the ask and the archive's ``rows``."""
-    repeats = state.get("pending_repeats")
-    asked = 0 if owner is None else int((owner == REPEAT).sum())
-    held = 0 if repeats is None else int(repeats.numel())
-    if held != asked or (held and not (0 <= int(repeats.min()) and int(repeats.max()) < rows)):
-        raise ValueError(
-            f"state_dict['pending_repeats'] must list the archive row (0 <= row < {rows}) of "
-            f"each of the pending ask's {asked} repeated evaluations, got {held}"
-        )
-    return None if repeats is None else repeats.to(device=device, dtype=torch.long)

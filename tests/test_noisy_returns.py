@@ -1,5 +1,5 @@
 """Noisy returns: ``best_evaluations`` evaluates a sampled policy's best kept sample again,
-one more time at each ask, and keeps the mean of its returns (``PolicySearch._repeat_rows``,
+one more time at each ask, and keeps the mean of its returns (``RepeatedEvaluations``,
 ``SampleArchive.average_in``)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import torch
 
 from dipole_torch import Dipole, Power
 from dipole_torch.archive import REPEAT
-from dipole_torch.search import DETERMINISTIC_REPEATS
+from dipole_torch.repeats import DETERMINISTIC_REPEATS
 
 F64 = torch.float64
 PEAK = torch.tensor([1.3, -2.1], dtype=F64)
@@ -113,7 +113,7 @@ def test_a_sample_is_evaluated_at_most_best_evaluations_times(build):
             key = tuple(theta[row].tolist())
             times[key] = times.get(key, 0) + 1
         opt.tell(theta, reward(theta))
-    assert opt.noisy_returns
+    assert opt.repeats.noisy
     assert len(times) > 5, "few samples were evaluated again"
     assert max(times.values()) == 2  # told once as a sample, then twice more
     counts = opt.archive.evaluation_counts()
@@ -130,7 +130,7 @@ def test_deterministic_returns_are_evaluated_again_only_a_few_times(build):
         repeats += int((opt.asked_owner == REPEAT).sum())
         opt.tell(theta, cone(theta))
     assert DETERMINISTIC_REPEATS <= repeats <= DETERMINISTIC_REPEATS + 3  # (one ask's few)
-    assert opt.identical_repeats == repeats and not opt.noisy_returns
+    assert opt.repeats.identical == repeats and not opt.repeats.noisy
 
 
 def test_the_default_evaluates_every_sample_once_and_draws_as_before():
@@ -192,7 +192,7 @@ def test_a_pending_ask_with_repeats_resumes_exactly():
     state = opt.state_dict()
     resumed = make(seed=3, best_evaluations=3)
     resumed.load_state_dict(state)
-    assert resumed.noisy_returns and resumed.identical_repeats == opt.identical_repeats
+    assert resumed.repeats.noisy and resumed.repeats.identical == opt.repeats.identical
     generator_state = reward.generator.get_state()
     for run in (opt, resumed):
         reward.generator.set_state(generator_state)  # the same noise for both
@@ -235,8 +235,8 @@ def test_returns_that_differ_in_their_last_bits_count_as_deterministic(relative,
         value = cone(theta)
         jitter = torch.randn(value.shape, generator=generator, dtype=F64)
         opt.tell(theta, value * (1 + relative * jitter))
-    assert opt.noisy_returns == noisy
-    assert (opt.identical_repeats >= DETERMINISTIC_REPEATS) == (not noisy)
+    assert opt.repeats.noisy == noisy
+    assert (opt.repeats.identical >= DETERMINISTIC_REPEATS) == (not noisy)
 
 
 def test_train_py_reports_what_the_repeats_found_the_returns_to_be():
@@ -268,7 +268,7 @@ def test_a_long_noisy_run_that_goes_well_converges_and_ends_cleanly(build):
     while opt.trials < 8000:
         theta = opt.ask()
         opt.tell(theta, reward(theta))
-    assert opt.noisy_returns
+    assert opt.repeats.noisy
     distance = float((opt.policy_means - PEAK).norm(dim=-1).min())
     assert distance < (1e-3 if build is make else 1e-2), distance
     assert torch.isfinite(opt.policy_means).all()

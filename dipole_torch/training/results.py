@@ -9,7 +9,6 @@ import torch
 
 from dipole_torch import Dipole
 from dipole_torch.checkpoint import atomic_save, atomic_write_text
-from dipole_torch.search import DETERMINISTIC_REPEATS
 
 __all__ = ["policy_summary", "repeat_summary", "write_results"]
 
@@ -38,22 +37,15 @@ def policy_summary(task, optimizer) -> list[dict]:
 
 def repeat_summary(optimizer) -> dict:
     """With ``best_evaluations`` > 1: ``{"repeats": {...}}``, what the repeated evaluations
-    found the returns to be (``"noisy"``, ``"deterministic"``, or ``"undecided"`` while too
-    few repeats were told); ``{}`` otherwise."""
-    evaluations = optimizer.best_evaluations
-    if evaluations <= 1:
+    found the returns to be (``RepeatedEvaluations.returns``); ``{}`` otherwise."""
+    repeats = optimizer.repeats
+    if repeats.evaluations <= 1:
         return {}
-    if optimizer.noisy_returns:
-        returns = "noisy"
-    elif optimizer.identical_repeats >= DETERMINISTIC_REPEATS:
-        returns = "deterministic"
-    else:
-        returns = "undecided"
     return {
         "repeats": {
-            "best_evaluations": evaluations,
-            "returns": returns,
-            "identical_repeats": optimizer.identical_repeats,
+            "best_evaluations": repeats.evaluations,
+            "returns": repeats.returns,
+            "identical_repeats": repeats.identical,
         }
     }
 
