@@ -388,14 +388,37 @@ def _cma_box(problem) -> tuple[list, float, list[float] | None, int]:
     return bounds, sigma0, stds, len(lower)
 
 
-def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
+def ipop_restart(problem, restart: int, rng: np.random.Generator):
+    """IPOP-CMA-ES's ``restart``-th run (from 0) on ``problem``'s box: pycma's
+    ``CMAEvolutionStrategy`` from a point uniform in the box, its population
+    4 + ⌊3 ln D⌋ doubled at each restart, its seed and start drawn from ``rng``."""
     import cma
 
-    d = landscape.dim
-    bounds, sigma0, stds, searched = _cma_box(landscape)
+    bounds, sigma0, stds, searched = _cma_box(problem)
     lower, upper = np.array(bounds[0]), np.array(bounds[1])
+    options = {
+        "bounds": bounds,
+        "popsize": (4 + int(3 * math.log(searched))) * 2**restart,  # IPOP: doubled
+        "seed": int(rng.integers(1, 2**31 - 1)),
+        "verbose": -9,
+        "verb_log": 0,
+        "verb_disp": 0,
+        # Restart once the step size is below what "found" needs (1e-3·sigma0, the
+        # precision at which DIPOLE retires a policy), not at pycma's default 1e-11:
+        # converging further only spends trials that the next restart could use.
+        # No tolerance on f: the landscapes' scale spans 10^±3.
+        "tolx": CMA_TOLX * sigma0,
+        "tolfun": 0.0,
+        "tolfunhist": 0.0,
+    }
+    if stds is not None:
+        options["CMA_stds"] = stds
+    return cma.CMAEvolutionStrategy(rng.uniform(lower, upper, searched), sigma0, options)
+
+
+def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> Snapshots:
+    d = landscape.dim
     rng = np.random.default_rng(seed)
-    popsize = 4 + int(3 * math.log(searched))
     top = budgets[-1]
     used = restarts = 0
     bests: list[tuple[np.ndarray, float]] = []  # finished restarts' best (x, f)
@@ -408,25 +431,8 @@ def run_ipop_cmaes(landscape: Landscape, budgets: Sequence[int], seed: int) -> S
     with _global_rngs(seed), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # pycma's notes on flat fitness etc.
         while used < top:
-            options = {
-                "bounds": bounds,
-                "popsize": popsize * 2**restarts,  # IPOP: doubled at each restart
-                "seed": int(rng.integers(1, 2**31 - 1)),
-                "verbose": -9,
-                "verb_log": 0,
-                "verb_disp": 0,
-                # Restart once the step size is below what "found" needs (1e-3·sigma0, the
-                # precision at which DIPOLE retires a policy), not at pycma's default 1e-11:
-                # converging further only spends trials that the next restart could use.
-                # No tolerance on f: the landscapes' scale spans 10^±3.
-                "tolx": CMA_TOLX * sigma0,
-                "tolfun": 0.0,
-                "tolfunhist": 0.0,
-            }
-            if stds is not None:
-                options["CMA_stds"] = stds
+            es = ipop_restart(landscape, restarts, rng)
             restarts += 1
-            es = cma.CMAEvolutionStrategy(rng.uniform(lower, upper, searched), sigma0, options)
             best: tuple[np.ndarray, float] | None = None
             while used < top and not es.stop():
                 asked = es.ask()

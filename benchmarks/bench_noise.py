@@ -35,7 +35,6 @@ each noise level, and the returned solutions. Everything goes to ``--json`` (def
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -47,12 +46,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_multioptima import (  # noqa: E402
-    CMA_TOLX,
     DTYPE,
     Landscape,
-    _cma_box,
     _global_rngs,
     case_seeds,
+    ipop_restart,
     make_landscape,
     run_dipole,
     run_ipop_cmaes,
@@ -103,10 +101,7 @@ def run_uh_ipop_cmaes(problem, budgets: Sequence[int], seed: int):
 
     (budget,) = budgets
     d = problem.dim
-    bounds, sigma0, stds, searched = _cma_box(problem)
-    lower, upper = np.array(bounds[0]), np.array(bounds[1])
     rng = np.random.default_rng(seed)
-    popsize = 4 + int(3 * math.log(searched))
     used = 0
 
     def f(x) -> float:  # one evaluation, negated (pycma minimises)
@@ -120,14 +115,7 @@ def run_uh_ipop_cmaes(problem, budgets: Sequence[int], seed: int):
     with _global_rngs(seed), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for restart in range(10**6):
-            options = {
-                "bounds": bounds, "popsize": popsize * 2**restart,
-                "seed": int(rng.integers(1, 2**31 - 1)), "verbose": -9, "verb_log": 0,
-                "verb_disp": 0, "tolx": CMA_TOLX * sigma0, "tolfun": 0.0, "tolfunhist": 0.0,
-            }  # fmt: skip
-            if stds is not None:
-                options["CMA_stds"] = stds
-            es = cma.CMAEvolutionStrategy(rng.uniform(lower, upper, searched), sigma0, options)
+            es = ipop_restart(problem, restart, rng)
             noise = cma.NoiseHandler(es.N, maxevals=[1, 1, 30])
             try:
                 while not es.stop():
