@@ -14,6 +14,11 @@ deterministic and nothing is repeated again: the option then costs a determinist
 few trials. (Returns of a few discrete values, a success or a failure, can repeat by chance:
 there, a run may stop repeating early; noise below ``REPEAT_RTOL`` of the return is taken for
 none.)
+
+The repeats also keep the best averaged sample: of the samples whose return came to average
+``evaluations`` returns, the one with the best mean (``best``). On noisy returns the best
+single return told is the luckiest of thousands, several noise stds above what its θ
+returns on average; the search's ``best()`` reports the averaged one instead.
 """
 
 from __future__ import annotations
@@ -46,6 +51,9 @@ class RepeatedEvaluations:
         identical: repeats told that returned the return they repeat (while none differed).
         noisy: whether a repeat ever returned another return than the one it repeated.
         pending: ``[R]`` the archive rows of the pending ask's repeats (None: none).
+        best: ``([D] θ, its mean return)`` the best sample whose return averages
+            ``evaluations`` returns, at the tell that completed it (None: none yet). Kept
+            when the sample leaves the archive.
     """
 
     def __init__(self, evaluations: int = 1):
@@ -53,6 +61,7 @@ class RepeatedEvaluations:
         self.identical = 0
         self.noisy = False
         self.pending: Tensor | None = None
+        self.best: tuple[Tensor, float] | None = None
 
     @property
     def returns(self) -> str:
@@ -61,6 +70,12 @@ class RepeatedEvaluations:
         if self.noisy:
             return "noisy"
         return "deterministic" if self.identical >= DETERMINISTIC_REPEATS else "undecided"
+
+    @property
+    def best_averaged(self) -> tuple[Tensor, float] | None:
+        """``best`` once the returns were found noisy (None otherwise: where no repeat ever
+        returned another return, a single return told is as good as their mean)."""
+        return self.best if self.noisy else None
 
     def rows(self, archive: SampleArchive, policies: list[int]) -> list[int]:
         """The archive rows to evaluate again at an ask sampling ``policies``: each one's best
@@ -89,7 +104,8 @@ class RepeatedEvaluations:
     def tell(self, archive: SampleArchive, returns: Tensor) -> None:
         """The returns ``[R']`` of the pending ask's first R' repeats (a cut ask may tell
         fewer than it asked): counted as the same as the returns they repeat or not, then
-        averaged into their samples. Clears ``pending``."""
+        averaged into their samples; the best of those that now average ``evaluations``
+        returns replaces ``best`` if it is better. Clears ``pending``."""
         rows, self.pending = self.pending, None
         if returns.numel() == 0:
             return
@@ -101,6 +117,19 @@ class RepeatedEvaluations:
         else:
             self.noisy = True
         archive.average_in(rows, returns)
+        counts = archive.evaluation_counts()[rows].tolist()
+        means = archive.rewards[rows].tolist()
+        done = [i for i, count in enumerate(counts) if count >= self.evaluations]
+        if done:
+            i = max(done, key=means.__getitem__)  # (the first of equal means)
+            if self.best is None or means[i] > self.best[1]:
+                self.best = (archive.thetas[rows[i]].clone(), means[i])
+
+    def forget(self) -> None:
+        """The world changed: the pending repeats and the best averaged sample are dropped
+        (what the repeats found of the noise is kept)."""
+        self.pending = None
+        self.best = None
 
     def state_dict(self, copy: bool = True) -> dict:
         return {
@@ -109,14 +138,20 @@ class RepeatedEvaluations:
             else self.pending,
             "identical_repeats": self.identical,
             "noisy_returns": self.noisy,
+            "best_averaged_theta": None
+            if self.best is None
+            else self.best[0].clone()
+            if copy
+            else self.best[0],
+            "best_averaged_reward": None if self.best is None else self.best[1],
         }
 
     def load_state_dict(
-        self, state: dict, owner: Tensor | None, rows: int, device: torch.device
+        self, state: dict, owner: Tensor | None, rows: int, dim: int, device: torch.device
     ) -> None:
-        """Load the counters and the pending repeats' archive rows, checked against the
-        pending ask's ``owner`` and the archive's ``rows`` (a state from before repeats: none
-        made, none pending)."""
+        """Load the counters, the best averaged sample (``[dim]``) and the pending repeats'
+        archive rows, checked against the pending ask's ``owner`` and the archive's ``rows``
+        (a state from before repeats: none made, none pending, none averaged)."""
         repeats = state.get("pending_repeats")
         asked = 0 if owner is None else int((owner == REPEAT).sum())
         held = 0 if repeats is None else int(repeats.numel())
@@ -128,3 +163,13 @@ class RepeatedEvaluations:
         self.pending = None if repeats is None else repeats.to(device=device, dtype=torch.long)
         self.identical = int(state.get("identical_repeats", 0))
         self.noisy = bool(state.get("noisy_returns", False))
+        theta, value = state.get("best_averaged_theta"), state.get("best_averaged_reward")
+        if (theta is None) != (value is None) or (
+            theta is not None and tuple(theta.shape) != (dim,)
+        ):
+            raise ValueError(
+                f"state_dict['best_averaged_theta'] must be None or have shape [{dim}], with "
+                f"state_dict['best_averaged_reward'] None or its return, got "
+                f"{None if theta is None else list(theta.shape)} and {value!r}"
+            )
+        self.best = None if theta is None else (theta.to(device), float(value))

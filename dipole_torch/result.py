@@ -16,7 +16,7 @@ class SearchResult:
 
     Attributes:
         best_theta: ``[D]`` the best parameters evaluated so far.
-        best_reward: their return.
+        best_reward: their return (the mean of ``best_evaluations`` returns).
         trials: reward evaluations told so far.
         iterations: tells after the first batch.
         means: ``[K, D]`` the policies' means.
@@ -28,6 +28,8 @@ class SearchResult:
         ids: ``[K]`` each policy's id (int64), kept for the whole run while rows move as
             policies are dropped: ``train.py``'s summary and ``results.json`` name policies
             by it.
+        best_evaluations: the returns ``best_reward`` averages: 1, or ``best_evaluations``
+            once repeated evaluations found the returns noisy (``PolicySearch.best``).
     """
 
     best_theta: Tensor
@@ -40,12 +42,14 @@ class SearchResult:
     active: Tensor
     converged: Tensor
     ids: Tensor
+    best_evaluations: int = 1
 
     def __str__(self) -> str:
         count = self.means.shape[0]
         noun = "policy" if count == 1 else "policies"
+        averaged = f" (the mean of {self.best_evaluations})" if self.best_evaluations > 1 else ""
         lines = [
-            f"best return {self.best_reward:.6g} after {self.trials} trials "
+            f"best return {self.best_reward:.6g}{averaged} after {self.trials} trials "
             f"({self.iterations} iterations); {count} {noun}, best first:"
         ]
         # Best first, each named by its row of ``means`` (the index a user reads it with)

@@ -266,8 +266,15 @@ class PolicySearch:
         return mixture.to(self.dtype)
 
     def best(self) -> tuple[Tensor, float]:
-        """The best parameters evaluated so far and their return: ``([D], float)``."""
-        return self._best_theta.to(self.dtype), self._best_reward
+        """The best parameters evaluated so far and their return: ``([D], float)``.
+
+        With ``best_evaluations`` > 1 on returns the repeats found noisy, the best sample
+        whose return averages ``best_evaluations`` returns, with that mean, once one does
+        (``RepeatedEvaluations.best``): the best single return told would be the luckiest.
+        Otherwise (and until then) the best single return told."""
+        averaged = self.repeats.best_averaged
+        theta, value = (self._best_theta, self._best_reward) if averaged is None else averaged
+        return theta.to(self.dtype), value
 
     def stop(self, max_trials: int | None = None) -> dict[str, str]:
         """The stopping criteria met (pycma's ``stop()``): empty while the run should go on.
@@ -297,6 +304,7 @@ class PolicySearch:
             active=self.active.clone(),
             converged=self.converged,
             ids=self.policy_set.ids.clone(),
+            best_evaluations=1 if self.repeats.best_averaged is None else self.repeats.evaluations,
         )
 
     # ------------------------------------------------------------------ ask
@@ -507,7 +515,8 @@ class PolicySearch:
         best = int(returns.argmax())
         self._best_theta = self.policy_means[best].clone()
         self._best_reward = float(returns[best])
-        self._pending = self._pending_owner = self.repeats.pending = None
+        self._pending = self._pending_owner = None
+        self.repeats.forget()
         self._restart(hurt)
 
     def _restart(self, rows: Tensor) -> None:
@@ -635,7 +644,7 @@ class PolicySearch:
             self._pending = None if pending is None else pending.to(self.device)
             self._pending_owner = None if owner is None else owner.to(self.device)
             self._pending_boxed = False  # (rows from elsewhere: checked against the box)
-            self.repeats.load_state_dict(state, owner, len(self.archive), self.device)
+            self.repeats.load_state_dict(state, owner, len(self.archive), self.dim, self.device)
             self.generator.set_state(state["generator"])
         except KeyError as missing:
             raise ValueError(

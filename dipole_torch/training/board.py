@@ -5,7 +5,8 @@ Tags (the step is always the trial count, the x-axis of the paper's plots), grou
 TensorBoard's Time Series tab opens on the returns:
 
 * ``reward/best``, ``reward/mean``: the best and mean of each policy's latest return
-  (``last_rewards``); ``reward/best_so_far``: the best return evaluated so far;
+  (``last_rewards``); ``reward/best_so_far``: the best return evaluated so far (``best()``: on noisy
+  returns with ``best_evaluations`` > 1, the best mean of that many);
 * ``search/policies``: the number of policies; ``search/log10_exploration_std``: log10 of
   the mean, over the active policies, of each one's largest per-axis exploration std
   relative to Σ_start's (``relative_std``; it shrinks geometrically as they converge);

@@ -70,8 +70,10 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
     """The run's last lines: the best return, then each policy (by its id, best first) with
     the task's description of it, or its return where the task has none."""
     policies = results["policies"]
+    averaged = results.get("repeats", {}).get("best_reward_evaluations", 1)
+    mean = f" (the mean of {averaged})" if averaged > 1 else ""
     lines = [
-        f"{name} on {task_name}: best return {_number(results['best_reward'])} in "
+        f"{name} on {task_name}: best return {_number(results['best_reward'])}{mean} in "
         f"{results['trials']} trials (budget {results['trial_budget']}); {len(policies)} "
         "policies (their means, without exploration):"
     ]

@@ -46,6 +46,8 @@ def repeat_summary(optimizer) -> dict:
             "best_evaluations": repeats.evaluations,
             "returns": repeats.returns,
             "identical_repeats": repeats.identical,
+            # (best_reward: the mean of best_evaluations returns, or a single one)
+            "best_reward_evaluations": 1 if repeats.best_averaged is None else repeats.evaluations,
         }
     }
 
