@@ -66,6 +66,16 @@ def test_the_summary_names_each_policy_once_by_id():
         "means, without exploration):"
     )
     assert lines[1:3] == ["  policy 3: route (0, 1): return 0.900", "  policy 7: return 0.5"]
+    one = summary("power", "cartpole", results | {"policies": results["policies"][:1]}, "x")
+    assert "; 1 policy (their means" in one
+
+
+def test_one_policy_is_one_policy_in_the_log_lines(caplog):
+    caplog.set_level(logging.INFO, logger="train")
+    progress = Progress(100, 0, stream=io.StringIO())
+    progress.update(20, 20, {"best_so_far": 1.0, "num_policies": 1})
+    progress.close()
+    assert caplog.records[0].getMessage().endswith("best return 1, 1 policy")
 
 
 def run(*overrides, env=None):

@@ -57,7 +57,7 @@ class Progress:
         elif trials >= self.next_line or trials >= self.total:
             log.info(
                 f"{trials} of {self.total} trials ({100 * trials / self.total:.0f} %): best "
-                f"return {_number(best)}, {policies} policies"
+                f"return {_number(best)}, {_count(policies, 'policy', 'policies')}"
             )
             self.next_line = (trials // self.step + 1) * self.step
 
@@ -74,8 +74,8 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
     mean = f" (the mean of {averaged})" if averaged > 1 else ""
     lines = [
         f"{name} on {task_name}: best return {_number(results['best_reward'])}{mean} in "
-        f"{results['trials']} trials (budget {results['trial_budget']}); {len(policies)} "
-        "policies (their means, without exploration):"
+        f"{results['trials']} trials (budget {results['trial_budget']}); "
+        f"{_count(len(policies), 'policy', 'policies')} (their means, without exploration):"
     ]
     for policy in sorted(policies, key=lambda p: -p["return_of_mean"]):
         described = policy["description"] or f"return {_number(policy['return_of_mean'])}"
@@ -93,3 +93,8 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
         )
     lines.append(f"outputs in {out}")
     return "\n".join(lines)
+
+
+def _count(n: int, one: str, many: str) -> str:
+    """``"1 policy"``, ``"3 policies"``."""
+    return f"{n} {one if n == 1 else many}"
