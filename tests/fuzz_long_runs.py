@@ -24,15 +24,16 @@ Each seed draws, from its own ``random.Random``:
 
 A case fails when it raises anything but the clear errors for inputs that the options refuse
 (``ValueError``/``TypeError`` of an option set, returns that ``reward_range="positive"``
-refuses), asks an empty or non-finite batch, or ends with non-finite policy means. Printed:
-one line per failure (seed, error, the case's settings, the traceback's end), cases slower
-than a minute, and the count.
+refuses), asks an empty or non-finite batch, or ends with non-finite policy means or a
+non-finite ``best()``. Printed: one line per failure (seed, error, the case's settings, the
+traceback's end), cases slower than a minute, and the count.
 """
 
 from __future__ import annotations
 
 import argparse
 import io
+import math
 import random
 import time
 import traceback
@@ -213,7 +214,9 @@ def run_case(seed: int, budget: int | None = None) -> str | None:
                 opt = restored
         if opt.policy_means.numel() and not torch.isfinite(opt.policy_means).all():
             return f"non-finite policy means | {case}"
-        opt.best()
+        best_theta, best_reward = opt.best()
+        if not (torch.isfinite(best_theta).all() and math.isfinite(best_reward)):
+            return f"a non-finite best() | {case}"
         opt.result  # noqa: B018 (its views must build)
     except Exception as error:  # noqa: BLE001 (every other error is a finding)
         if refused_input(error):
