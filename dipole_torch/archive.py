@@ -81,15 +81,11 @@ class SampleArchive:
         self.rewards = self.rewards.index_put((rows,), mean)
         self.evaluations = counts.index_put((rows,), n + 1)
 
-    def best_rows(self, policies: list[int]) -> list[int]:
-        """The row of each of ``policies``' best kept sample (the first of equal ones;
-        -1 for a policy that keeps none)."""
-        owner, rewards = self.host_lists()
-        best: dict[int, int] = {}
-        for row, (policy, value) in enumerate(zip(owner, rewards, strict=True)):
-            if policy >= 0 and (policy not in best or value > rewards[best[policy]]):
-                best[policy] = row
-        return [best.get(policy, -1) for policy in policies]
+    def best_rows(self, policies: list[int], num_policies: int) -> list[int]:
+        """The row of each of ``policies``' best kept sample (``best_row_index``; -1 for a
+        policy that keeps none), of ``num_policies`` in all."""
+        rows = self.best_row_index(num_policies).tolist()
+        return [rows[policy] for policy in policies]
 
     # The per-policy reductions below are memoised (``Memo``): an iteration asks for each
     # policy's best return in several mechanisms, mostly while the archive stands still.
@@ -153,16 +149,32 @@ class SampleArchive:
                 count[policy] += 1
         return [t / max(n, 1) for t, n in zip(total, count, strict=True)]
 
-    def best_samples(self, means: Tensor) -> Tensor:
-        """``[K, D]`` each policy's best kept sample (its row of ``means [K, D]`` where it
-        has none). Memoised: not to be written into."""
+    def best_row_index(self, num_policies: int) -> Tensor:
+        """``[K]`` the row of each policy's best kept sample, the last of its rows of equal
+        returns (-1: none kept). Memoised: not to be written into."""
 
         def compute() -> Tensor:
-            # One more row, last, takes the samples of no policy (owner -1).
-            best = torch.cat((means, means.new_zeros(1, means.shape[1])))
-            order = torch.argsort(self.rewards, stable=True)
-            best[self.owner[order]] = self.thetas[order]  # ascending: the best is written last
-            return best[:-1]
+            # Found by reductions: an indexed write of every row sorted by return (the last
+            # write winning) is undefined where indices repeat, and on CUDA may keep any.
+            slots = self._slots()  # (slot 0: the samples of no policy)
+            top = self.per_policy("amax", num_policies)
+            is_top = self.rewards == torch.cat((top.new_full((1,), math.inf), top))[slots]
+            rows = torch.arange(self.rewards.shape[0], device=self.rewards.device)
+            last = torch.full((num_policies + 1,), -1, dtype=torch.long, device=rows.device)
+            return last.scatter_reduce(0, slots, torch.where(is_top, rows, -1), "amax")[1:]
+
+        sources = (self.owner, self.rewards)
+        return self._memo.get(("best_rows", num_policies), sources, compute)
+
+    def best_samples(self, means: Tensor) -> Tensor:
+        """``[K, D]`` each policy's best kept sample (``best_row_index``; its row of ``means
+        [K, D]`` where it has none). Memoised: not to be written into."""
+
+        def compute() -> Tensor:
+            if self.rewards.shape[0] == 0:
+                return means.clone()
+            rows = self.best_row_index(means.shape[0])
+            return torch.where(rows[:, None] >= 0, self.thetas[rows.clamp_min(0)], means)
 
         sources = (self.owner, self.rewards, self.thetas, means)
         return self._memo.get("best_samples", sources, compute)

@@ -77,21 +77,24 @@ class RepeatedEvaluations:
         returned another return, a single return told is as good as their mean)."""
         return self.best if self.noisy else None
 
-    def rows(self, archive: SampleArchive, policies: list[int]) -> list[int]:
+    def rows(self, archive: SampleArchive, policies: list[int], num_policies: int) -> list[int]:
         """The archive rows to evaluate again at an ask sampling ``policies``: each one's best
         kept sample while it averages fewer than ``evaluations`` returns (none once the
         returns are deterministic)."""
         if self.evaluations <= 1 or self.returns == "deterministic":
             return []
         counts = archive.evaluation_counts().tolist()
-        rows = [row for row in archive.best_rows(policies) if row >= 0]
+        rows = [row for row in archive.best_rows(policies, num_policies) if row >= 0]
         return [row for row in rows if counts[row] < self.evaluations]
 
-    def extend(self, archive: SampleArchive, theta: Tensor, owner: Tensor) -> tuple[Tensor, Tensor]:
+    def extend(
+        self, archive: SampleArchive, theta: Tensor, owner: Tensor, num_policies: int
+    ) -> tuple[Tensor, Tensor]:
         """The proposal ``theta [B, D]``, ``owner [B]`` followed by the repeats (owner
-        ``REPEAT``), whose rows become ``pending``."""
+        ``REPEAT``), whose rows become ``pending`` (``num_policies``: the search's K)."""
         self.pending = None
-        rows = self.rows(archive, [policy for policy in owner.tolist() if policy >= 0])
+        policies = [policy for policy in owner.tolist() if policy >= 0]
+        rows = self.rows(archive, policies, num_policies)
         if not rows:
             return theta, owner
         self.pending = torch.tensor(rows, dtype=torch.long, device=owner.device)

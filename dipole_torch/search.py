@@ -316,7 +316,8 @@ class PolicySearch:
             return self.n0
         size = self._batch_size()
         if self.repeats.evaluations > 1:
-            size += len(self.repeats.rows(self.archive, self._sampled_policies().tolist()))
+            sampled = self._sampled_policies().tolist()
+            size += len(self.repeats.rows(self.archive, sampled, self.num_policies))
         return size
 
     def _batch_size(self) -> int:
@@ -350,7 +351,7 @@ class PolicySearch:
             theta, owner = self._propose()
         self.repeats.pending = None
         if self.started and self.repeats.evaluations > 1:
-            theta, owner = self.repeats.extend(self.archive, theta, owner)
+            theta, owner = self.repeats.extend(self.archive, theta, owner, self.num_policies)
         theta = into_box(self.box, theta)
         self._pending, self._pending_owner = theta, owner
         self._pending_boxed = True

@@ -83,6 +83,31 @@ def test_the_archive_keeps_owners_with_their_samples():
     assert archive.thetas[:, 0].tolist() == [0.0, 2.0, 3.0, 4.0]
 
 
+def test_each_policys_best_row_is_the_last_of_equal_returns_and_found_by_reductions():
+    """The repeats' rows and the best samples come from one reduction: of a policy's rows of
+    equal best return, the last (a sort and an indexed write would leave the choice among
+    repeated indices to the device); a scout of equal return is no policy's."""
+    archive = SampleArchive(1, torch.device("cpu"))
+    archive.append(
+        torch.tensor([[0.0], [1.0], [2.0], [3.0], [4.0], [5.0], [6.0]], dtype=F64),
+        torch.tensor([3.0, 3.0, 1.0, 7.0, 7.0, 9.0, 7.0], dtype=F64),
+        torch.tensor([0, 0, 0, 1, 1, -1, 1]),
+    )
+    assert archive.best_row_index(3).tolist() == [1, 6, -1]
+    assert archive.best_rows([1, 2, 0], 3) == [6, -1, 1]
+    means = torch.full((3, 1), 9.5, dtype=F64)
+    assert archive.best_samples(means)[:, 0].tolist() == [1.0, 6.0, 9.5]
+    # By hand: the last row of each policy's largest return.
+    owner, rewards = archive.owner.tolist(), archive.rewards.tolist()
+    for policy in range(2):
+        rows = [i for i, o in enumerate(owner) if o == policy]
+        top = max(rewards[i] for i in rows)
+        assert archive.best_row_index(3)[policy] == max(i for i in rows if rewards[i] == top)
+    empty = SampleArchive(1, torch.device("cpu"))
+    assert empty.best_row_index(2).tolist() == [-1, -1]
+    assert torch.equal(empty.best_samples(means), means)
+
+
 @pytest.mark.parametrize("build", [Dipole, Power])
 def test_a_state_of_another_dimension_is_refused(build):
     three = build(torch.zeros(3, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
