@@ -67,7 +67,7 @@ def test_the_summary_names_each_policy_once_by_id():
     )
     assert lines[1:3] == ["  policy 3: route (0, 1): return 0.900", "  policy 7: return 0.5"]
     one = summary("power", "cartpole", results | {"policies": results["policies"][:1]}, "x")
-    assert "; 1 policy (their means" in one
+    assert "; 1 policy (its mean, without exploration):" in one
 
 
 def test_one_policy_is_one_policy_in_the_log_lines(caplog):

@@ -75,7 +75,8 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
     lines = [
         f"{name} on {task_name}: best return {_number(results['best_reward'])}{mean} in "
         f"{results['trials']} trials (budget {results['trial_budget']}); "
-        f"{_count(len(policies), 'policy', 'policies')} (their means, without exploration):"
+        f"{_count(len(policies), 'policy', 'policies')} "
+        f"({'its mean' if len(policies) == 1 else 'their means'}, without exploration):"
     ]
     for policy in sorted(policies, key=lambda p: -p["return_of_mean"]):
         described = policy["description"] or f"return {_number(policy['return_of_mean'])}"
