@@ -9,6 +9,7 @@ from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.memo import Memo
+from dipole_torch.power import HOST_ROWS
 
 __all__ = ["NO_POLICY", "PROBE", "REPEAT", "SampleArchive"]
 
@@ -84,7 +85,9 @@ class SampleArchive:
     def best_rows(self, policies: list[int], num_policies: int) -> list[int]:
         """The row of each of ``policies``' best kept sample (``best_row_index``; -1 for a
         policy that keeps none), of ``num_policies`` in all."""
-        rows = self.best_row_index(num_policies).tolist()
+        rows = self._host_best_rows(num_policies) if self._on_host() else None
+        if rows is None:
+            rows = self.best_row_index(num_policies).tolist()
         return [rows[policy] for policy in policies]
 
     # The per-policy reductions below are memoised (``Memo``): an iteration asks for each
@@ -152,6 +155,9 @@ class SampleArchive:
     def best_row_index(self, num_policies: int) -> Tensor:
         """``[K]`` the row of each policy's best kept sample, the last of its rows of equal
         returns (-1: none kept). Memoised: not to be written into."""
+        if self._on_host():
+            rows = self._host_best_rows(num_policies)
+            return torch.tensor(rows, dtype=torch.long, device=self.owner.device)
 
         def compute() -> Tensor:
             # Found by reductions: an indexed write of every row sorted by return (the last
@@ -166,14 +172,41 @@ class SampleArchive:
         sources = (self.owner, self.rewards)
         return self._memo.get(("best_rows", num_policies), sources, compute)
 
+    def _on_host(self) -> bool:
+        """Whether the per-sample searches run on ``host_lists`` (the CPU, at most
+        ``HOST_ROWS`` rows: a few microseconds of Python where tensor operations make a dozen
+        calls)."""
+        return self.owner.device.type == "cpu" and self.owner.shape[0] <= HOST_ROWS
+
+    def _host_best_rows(self, num_policies: int) -> tuple[int, ...]:
+        """``best_row_index`` as K host numbers, from ``host_lists``. Memoised."""
+
+        def compute() -> tuple[int, ...]:
+            owner, rewards = self.host_lists()
+            best = [-1] * num_policies
+            for row, (policy, value) in enumerate(zip(owner, rewards, strict=True)):
+                if policy >= 0 and (best[policy] < 0 or value >= rewards[best[policy]]):
+                    best[policy] = row  # (>=: the last of equal returns)
+            return tuple(best)
+
+        sources = (self.owner, self.rewards)
+        return self._memo.get(("host_best_rows", num_policies), sources, compute)
+
     def best_samples(self, means: Tensor) -> Tensor:
         """``[K, D]`` each policy's best kept sample (``best_row_index``; its row of ``means
         [K, D]`` where it has none). Memoised: not to be written into."""
 
         def compute() -> Tensor:
+            num_policies = means.shape[0]
+            if self._on_host():
+                listed = self._host_best_rows(num_policies)
+                rows = torch.tensor(listed, dtype=torch.long)  # (on the CPU)
+                if -1 not in listed:
+                    return self.thetas[rows]  # (every policy keeps a sample: the usual case)
+            else:
+                rows = self.best_row_index(num_policies)
             if self.rewards.shape[0] == 0:
                 return means.clone()
-            rows = self.best_row_index(means.shape[0])
             return torch.where(rows[:, None] >= 0, self.thetas[rows.clamp_min(0)], means)
 
         sources = (self.owner, self.rewards, self.thetas, means)
