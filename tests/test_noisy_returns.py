@@ -258,12 +258,42 @@ def test_train_py_reports_what_the_repeats_found_the_returns_to_be():
         assert ("best return 1 (the mean of 4) in" in text) == (name == "noisy")
     assert found["deterministic"]["returns"] == "deterministic"
     assert found["deterministic"]["best_reward_evaluations"] == 1
+    assert found["deterministic"]["mean_evaluations"] == 1
     assert found["noisy"] == {
         "best_evaluations": 4,
         "returns": "noisy",
         "identical_repeats": 0,
         "best_reward_evaluations": 4,
+        "mean_evaluations": 4,
     }
+
+
+def test_on_noisy_returns_the_policies_summary_averages_as_many_rollouts():
+    """results.json's return of each policy mean: one rollout, or on returns found noisy the
+    mean of best_evaluations rollouts (counted by a task that records its calls)."""
+    from dipole_torch.training.results import policy_summary
+
+    class Task:
+        device, dtype = torch.device("cpu"), F64
+
+        def __init__(self, reward):
+            self.reward, self.calls = reward, 0
+
+        def evaluate(self, theta):
+            self.calls += 1
+            return self.reward(theta)
+
+        def describe_policies(self, means):
+            return [""] * means.shape[0]
+
+    for reward, calls in ((cone, 1), (NoisyCone(), 4)):
+        opt = make(best_evaluations=4)
+        while opt.trials < 100:
+            theta = opt.ask()
+            opt.tell(theta, reward(theta))
+        task = Task(reward)
+        summary = policy_summary(task, opt)
+        assert task.calls == calls and len(summary) == opt.num_policies
 
 
 @pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])

@@ -15,10 +15,14 @@ __all__ = ["policy_summary", "repeat_summary", "write_results"]
 
 def policy_summary(task, optimizer) -> list[dict]:
     """One entry per policy: its id, mean, covariance, weight, the return of its mean
-    (evaluated without exploration) and the task's description of it."""
+    (evaluated without exploration; on returns the repeats found noisy, the mean of
+    ``best_evaluations`` rollouts, as ``best()``'s: ``mean_evaluations``) and the task's
+    description of it."""
     means = optimizer.policy_means.to(task.device, task.dtype)
     with torch.no_grad():
-        returns = task.evaluate(means)
+        returns = torch.stack(
+            [task.evaluate(means) for _ in range(mean_evaluations(optimizer))]
+        ).mean(0)
     weights = optimizer.policies.weights
     descriptions = task.describe_policies(means)
     ids = optimizer.policy_set.ids.tolist()
@@ -35,6 +39,13 @@ def policy_summary(task, optimizer) -> list[dict]:
     ]
 
 
+def mean_evaluations(optimizer) -> int:
+    """Rollouts whose mean ``policy_summary`` reports for each policy mean: the optimizer's
+    ``best_evaluations`` once its repeats found the returns noisy, else 1."""
+    repeats = optimizer.repeats
+    return repeats.evaluations if repeats.noisy else 1
+
+
 def repeat_summary(optimizer) -> dict:
     """With ``best_evaluations`` > 1: ``{"repeats": {...}}``, what the repeated evaluations
     found the returns to be (``RepeatedEvaluations.returns``); ``{}`` otherwise."""
@@ -48,6 +59,8 @@ def repeat_summary(optimizer) -> dict:
             "identical_repeats": repeats.identical,
             # (best_reward: the mean of best_evaluations returns, or a single one)
             "best_reward_evaluations": 1 if repeats.best_averaged is None else repeats.evaluations,
+            # (each policy's return_of_mean: the mean of this many rollouts)
+            "mean_evaluations": mean_evaluations(optimizer),
         }
     }
 
