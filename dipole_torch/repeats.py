@@ -23,6 +23,8 @@ returns on average; the search's ``best()`` reports the averaged one instead.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -168,11 +170,17 @@ class RepeatedEvaluations:
         self.noisy = bool(state.get("noisy_returns", False))
         theta, value = state.get("best_averaged_theta"), state.get("best_averaged_reward")
         if (theta is None) != (value is None) or (
-            theta is not None and tuple(theta.shape) != (dim,)
+            theta is not None
+            and not (
+                isinstance(theta, Tensor)
+                and tuple(theta.shape) == (dim,)
+                and isinstance(value, (int, float))
+                and math.isfinite(value)
+            )
         ):
             raise ValueError(
-                f"state_dict['best_averaged_theta'] must be None or have shape [{dim}], with "
-                f"state_dict['best_averaged_reward'] None or its return, got "
-                f"{None if theta is None else list(theta.shape)} and {value!r}"
+                f"state_dict['best_averaged_theta'] must be None or a tensor of shape [{dim}], "
+                f"with state_dict['best_averaged_reward'] None or its finite return, got "
+                f"{getattr(theta, 'shape', theta)!r} and {value!r}"
             )
         self.best = None if theta is None else (theta.to(device), float(value))

@@ -363,8 +363,14 @@ def test_the_best_averaged_sample_is_checkpointed_and_forgotten_when_the_world_c
     older = {key: value for key, value in state.items() if not key.startswith("best_averaged")}
     resumed.load_state_dict(older)  # a checkpoint from before: none averaged yet
     assert resumed.repeats.best is None
-    with pytest.raises(ValueError, match="best_averaged_theta"):
-        resumed.load_state_dict(dict(state, best_averaged_theta=torch.zeros(3, dtype=F64)))
+    for bad in (
+        {"best_averaged_theta": torch.zeros(3, dtype=F64)},
+        {"best_averaged_reward": "high"},
+        {"best_averaged_reward": float("nan")},
+        {"best_averaged_reward": None},
+    ):
+        with pytest.raises(ValueError, match="best_averaged_theta"):
+            resumed.load_state_dict(dict(state, **bad))
     means = opt.policy_means
     opt.reevaluate(reward(means))
     assert opt.repeats.best is None
