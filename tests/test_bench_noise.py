@@ -41,3 +41,12 @@ def test_the_noise_handling_cma_es_stays_within_the_budget_and_returns_its_means
     assert sum(calls) == 400 == trials
     assert means.shape[1] == 2 and means.shape[0] >= 1
     assert bool(((means >= -5) & (means <= 5)).all())
+
+
+def test_the_best_gap_measures_both_returns_above_the_noise_free_value():
+    """On a run with noise, best()'s return and the best told lie above the truth at their
+    θ (the luckiest told return most), and the table says so for each level."""
+    case = bench.best_gap(2, 2, 0, 0.03, 400)
+    assert 0 < case["best"] < case["told"] < 0.3, case
+    table = bench.gap_table([case], [2], [0.03])
+    assert "D = 2, noise 3 %: best()" in table and "(1 runs)" in table
