@@ -9,9 +9,8 @@ from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.memo import Memo
-from dipole_torch.power import HOST_ROWS
 
-__all__ = ["NO_POLICY", "PROBE", "REPEAT", "SampleArchive"]
+__all__ = ["HOST_ROWS", "NO_POLICY", "PROBE", "REPEAT", "SampleArchive"]
 
 # Owner codes of told rows: k >= 0, a sample of policy k; NO_POLICY, a sample that belongs to
 # no policy yet (a scout); PROBE, an evaluation that is not a sample of any exploration
@@ -20,6 +19,13 @@ __all__ = ["NO_POLICY", "PROBE", "REPEAT", "SampleArchive"]
 NO_POLICY = -1
 PROBE = -2
 REPEAT = -3
+
+# Up to this many rows the per-sample searches on the CPU (each policy's best row here, the
+# importance sets in ``dipole_torch.power``) run in Python numbers on ``host_lists``: at an
+# archive's usual sizes (tens of rows) that is a few microseconds where tensor operations
+# make a dozen to forty calls, each cold in a run (docs: Speed); from about a thousand rows
+# (a large first batch) the tensor path's sorts are the faster.
+HOST_ROWS = 512
 
 
 class SampleArchive:

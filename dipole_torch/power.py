@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from dipole_torch.archive import HOST_ROWS
 from dipole_torch.gaussian import DTYPE
 
 if TYPE_CHECKING:
@@ -126,11 +127,8 @@ def importance_rows(
     return kept_rows, index, valid.reshape(num_policies, size)
 
 
-# Up to this many samples the importance sets are chosen in Python scalars on the CPU: at an
-# archive's usual sizes (tens of rows) that is a few microseconds where the tensor path makes
-# some forty calls, each cold in a run (docs: Speed); from about a thousand rows (a large
-# first batch) the tensor path's sorts are the faster.
-HOST_ROWS = 512
+# Up to HOST_ROWS samples (``dipole_torch.archive``) the importance sets are chosen in Python
+# scalars on the CPU.
 _TINY = torch.finfo(DTYPE).tiny
 
 
