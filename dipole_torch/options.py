@@ -176,7 +176,9 @@ class DipoleOptions:
             where the luck was (docs: Reliability, noisy returns). Once 3 repeats in a row
             return the returns they repeat (to 1e-6 of them: ``DETERMINISTIC_REPEATS``,
             ``REPEAT_RTOL``), the returns are taken to be deterministic and none is repeated
-            again.
+            again. How many: a mean of n returns of noise std s has std s/√n, so n ≈ (s/ε)²
+            for a precision ε; more only spend trials (4 is a fair start: measured on the
+            Reliability page). ``best()`` then reports the best such mean.
         auxiliary: "fresh" (Algorithm 8's m draws per point), "reuse" (Favaro & Teh's re-used
             draws, exact too, CPU), or "auto" (reuse on the CPU once D + 1 >= 32).
     """
