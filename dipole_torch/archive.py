@@ -78,21 +78,24 @@ class SampleArchive:
             return torch.ones_like(self.owner)
         return self.evaluations
 
-    def average_in(self, rows: Tensor, returns: Tensor) -> None:
+    def average_in(self, rows: Tensor, returns: Tensor) -> tuple[Tensor, Tensor]:
         """Average ``returns [R]``, new evaluations of the kept samples ``rows [R]``
         (distinct row indices), into those samples' rewards. The tensors are replaced, not
-        written into (a tell's snapshot holds them)."""
+        written into (a tell's snapshot holds them). Returns the rows' new ``[R]`` rewards
+        and ``[R]`` evaluation counts."""
         counts = self.evaluation_counts()
-        n = counts[rows]
-        mean = (self.rewards[rows] * n + returns) / (n + 1)
+        n = counts[rows] + 1
+        mean = (self.rewards[rows] * (n - 1) + returns) / n
         self.rewards = self.rewards.index_put((rows,), mean)
-        self.evaluations = counts.index_put((rows,), n + 1)
+        self.evaluations = counts.index_put((rows,), n)
+        return mean, n
 
     def best_rows(self, policies: list[int], num_policies: int) -> list[int]:
         """The row of each of ``policies``' best kept sample (``best_row_index``; -1 for a
         policy that keeps none), of ``num_policies`` in all."""
-        rows = self._host_best_rows(num_policies) if self._on_host() else None
-        if rows is None:
+        if self._on_host():
+            rows = self._host_best_rows(num_policies)
+        else:
             rows = self.best_row_index(num_policies).tolist()
         return [rows[policy] for policy in policies]
 

@@ -79,6 +79,12 @@ class RepeatedEvaluations:
         returned another return, a single return told is as good as their mean)."""
         return self.best if self.noisy else None
 
+    @property
+    def reported_evaluations(self) -> int:
+        """The returns that ``best()``'s return averages: ``evaluations`` once it reports
+        ``best_averaged``, else 1 (a single return told)."""
+        return 1 if self.best_averaged is None else self.evaluations
+
     def rows(self, archive: SampleArchive, policies: list[int], num_policies: int) -> list[int]:
         """The archive rows to evaluate again at an ask sampling ``policies``: each one's best
         kept sample while it averages fewer than ``evaluations`` returns (none once the
@@ -121,9 +127,7 @@ class RepeatedEvaluations:
             self.identical += len(same)
         else:
             self.noisy = True
-        archive.average_in(rows, returns)
-        counts = archive.evaluation_counts()[rows].tolist()
-        means = archive.rewards[rows].tolist()
+        means, counts = (values.tolist() for values in archive.average_in(rows, returns))
         done = [i for i, count in enumerate(counts) if count >= self.evaluations]
         if done:
             i = max(done, key=means.__getitem__)  # (the first of equal means)

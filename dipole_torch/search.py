@@ -304,7 +304,7 @@ class PolicySearch:
             active=self.active.clone(),
             converged=self.converged,
             ids=self.policy_set.ids.clone(),
-            best_evaluations=1 if self.repeats.best_averaged is None else self.repeats.evaluations,
+            best_evaluations=self.repeats.reported_evaluations,
         )
 
     # ------------------------------------------------------------------ ask

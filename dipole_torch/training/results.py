@@ -58,7 +58,7 @@ def repeat_summary(optimizer) -> dict:
             "returns": repeats.returns,
             "identical_repeats": repeats.identical,
             # (best_reward: the mean of best_evaluations returns, or a single one)
-            "best_reward_evaluations": 1 if repeats.best_averaged is None else repeats.evaluations,
+            "best_reward_evaluations": repeats.reported_evaluations,
             # (each policy's return_of_mean: the mean of this many rollouts)
             "mean_evaluations": mean_evaluations(optimizer),
         }
