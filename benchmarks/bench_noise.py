@@ -55,6 +55,7 @@ from bench_multioptima import (  # noqa: E402
     DTYPE,
     Landscape,
     _global_rngs,
+    _run_ask_tell,
     _start,
     case_seeds,
     ipop_restart,
@@ -237,11 +238,7 @@ def best_gap(dim: int, k: int, seed: int, noise: float, budget: int) -> dict:
     generator = torch.Generator().manual_seed(method_seed)
     opt = Dipole(theta0, sigma_start, bounds=bounds, generator=generator,
                  best_evaluations=REPEATS)  # fmt: skip
-    while True:
-        theta = opt.ask()
-        if opt.trials + theta.shape[0] > budget:
-            break
-        opt.tell(theta, problem(theta))
+    _run_ask_tell(opt, problem, [budget])
     reported_theta, reported = opt.best()
     state = opt.state_dict()  # (the best single return told, as best() reports it without)
     told_theta, told = state["best_theta"], state["best_reward"]
