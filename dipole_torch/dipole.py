@@ -22,7 +22,8 @@ from dipole_torch.mechanisms.scouting import Scouting
 from dipole_torch.options import DipoleOptions
 from dipole_torch.power import make_importance
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.search import PolicySearch, TellBatch
+from dipole_torch.search import PolicySearch
+from dipole_torch.tell_batch import TellBatch
 
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
     from dipole_torch.gaussian_mixture import GaussianMixture

@@ -242,7 +242,7 @@ def test_the_paper_variant_never_wakes():
 def test_the_success_rules_path_shrinks_with_the_exploration():
     # Σ = σ²C of the (1+1)-CMA-ES in one matrix: after failures only, the path p (σ·p_c)
     # has shrunk by the factor the std has, so a success's rank-one term p pᵀ fits Σ.
-    from dipole_torch.search import TellBatch
+    from dipole_torch.tell_batch import TellBatch
 
     opt = Dipole(torch.zeros(2, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
     theta = opt.ask()

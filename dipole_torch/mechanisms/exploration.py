@@ -21,7 +21,8 @@ from dipole_torch.gaussian import DTYPE
 from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
-    from dipole_torch.search import PolicySearch, TellBatch
+    from dipole_torch.search import PolicySearch
+    from dipole_torch.tell_batch import TellBatch
 
 __all__ = [
     "IGEL_TARGET_SUCCESS",

@@ -33,7 +33,8 @@ from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
     from dipole_torch.dipole import Dipole
-    from dipole_torch.search import PolicySearch, TellBatch
+    from dipole_torch.search import PolicySearch
+    from dipole_torch.tell_batch import TellBatch
 
 __all__ = ["HillValley", "NoVetting", "make_vetting"]
 

@@ -33,7 +33,8 @@ from dipole_torch.mechanisms.return_range import ReturnRange
 from dipole_torch.mechanisms.waking import NoWaking, Waking
 
 if TYPE_CHECKING:
-    from dipole_torch.search import PolicySearch, TellBatch
+    from dipole_torch.search import PolicySearch
+    from dipole_torch.tell_batch import TellBatch
 
 __all__ = ["Retirement", "exploration_distance"]
 

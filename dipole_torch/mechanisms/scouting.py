@@ -36,7 +36,8 @@ from dipole_torch.archive import NO_POLICY
 from dipole_torch.sampling import draw_gaussian, uniforms
 
 if TYPE_CHECKING:
-    from dipole_torch.search import PolicySearch, TellBatch
+    from dipole_torch.search import PolicySearch
+    from dipole_torch.tell_batch import TellBatch
 
 __all__ = ["Scouting"]
 

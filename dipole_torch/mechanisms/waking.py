@@ -23,7 +23,8 @@ from dipole_torch.memo import Memo
 from dipole_torch.policy_set import PolicyField
 
 if TYPE_CHECKING:
-    from dipole_torch.search import PolicySearch, TellBatch
+    from dipole_torch.search import PolicySearch
+    from dipole_torch.tell_batch import TellBatch
 
 __all__ = ["FINEST_STD", "VISIBLE_GAIN", "NoWaking", "Waking"]
 
