@@ -163,7 +163,8 @@ class SampleArchive:
 
     def best_row_index(self, num_policies: int) -> Tensor:
         """``[K]`` the row of each policy's best kept sample, the last of its rows of equal
-        returns (-1: none kept). Memoised: not to be written into."""
+        returns (-1: none kept). Memoised (on the host path, the host numbers it is built
+        from): not to be written into."""
         if self._on_host():
             rows = self._host_best_rows(num_policies)
             return torch.tensor(rows, dtype=torch.long, device=self.owner.device)
