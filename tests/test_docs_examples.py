@@ -209,8 +209,19 @@ def run_page(page: Path, cwd: Path) -> dict[int, str]:
     return outputs
 
 
+# Pages whose blocks run Hydra launcher plugins (the sweep extra), as tests/test_launchers.py.
+NEEDS_PLUGINS = {"docs/guide/sweeps.md": ("hydra_joblib_launcher", "hydra_submitit_launcher")}
+
+
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_code_block_of_the_page_runs(page, tmp_path, monkeypatch):
+    from test_launchers import plugin_installed
+
+    missing = [
+        m for m in NEEDS_PLUGINS.get(str(page.relative_to(ROOT)), ()) if not plugin_installed(m)
+    ]
+    if missing:
+        pytest.skip(f"{', '.join(missing)} not installed (pip install -e '.[sweep]')")
     monkeypatch.chdir(tmp_path)
     run_page(page, tmp_path)
 

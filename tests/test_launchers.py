@@ -28,9 +28,18 @@ TINY = ["task=multimodal", "trials=20", "progress=false", "figure_every=0"]
 GRID_STEP = 5  # n0 = 10, budget 20: grid points 10, 15, 20
 
 
+def plugin_installed(module: str) -> bool:
+    """Whether Hydra's plugin ``hydra_plugins.<module>`` is installed; False also where no
+    plugin is (``find_spec`` of a submodule raises when its parent package is missing)."""
+    try:
+        return importlib.util.find_spec(f"hydra_plugins.{module}") is not None
+    except ModuleNotFoundError:
+        return False
+
+
 def needs_plugin(module: str):
     return pytest.mark.skipif(
-        importlib.util.find_spec(f"hydra_plugins.{module}") is None,
+        not plugin_installed(module),
         reason=f"{module} is not installed (pip install -e '.[sweep]')",
     )
 
