@@ -414,8 +414,10 @@ def _refused_global(error: BaseException) -> str | None:
     """The object that the weights-only unpickler refused, if that is why it failed."""
     if not isinstance(error, pickle.UnpicklingError):
         return None
-    found = re.search(r"\bGLOBAL\s+(\S+)", str(error))
-    return found.group(1) if found else None
+    # ("GLOBAL posix.system was not an allowed global" in later torch releases, "Unsupported
+    # class posix.system" in torch 2.2 and 2.3.)
+    found = re.search(r"\bGLOBAL\s+(\S+)|\bUnsupported class\s+(\S+)", str(error))
+    return next(name for name in found.groups() if name) if found else None
 
 
 def _unsafe(kind: str, name: str, source: str, callables: list[str]) -> str:
