@@ -19,6 +19,7 @@ import re
 import shlex
 import signal
 import struct
+import subprocess
 import sys
 import zipfile
 from collections import Counter
@@ -463,26 +464,28 @@ def test_a_locked_run_directory_refuses_a_second_writer_until_released(tmp_path)
 def test_a_run_directory_lock_dies_with_its_process(tmp_path):
     """A process killed with SIGKILL while it holds the lock leaves no stale lock."""
     run = tmp_path / "run"
-    ready_read, ready_write = os.pipe()
-    child = os.fork()
-    if child == 0:  # pragma: no cover - the child process
-        try:
-            with run_directory.lock_run_directory(run):
-                os.write(ready_write, b"locked")
-                signal.pause()
-        finally:
-            os._exit(1)
-    os.close(ready_write)
+    # A child of its own interpreter (not os.fork of this multi-threaded one, which may
+    # deadlock in the child): it takes the lock, says so, and waits to be killed.
+    holder = (
+        "import sys, time\n"
+        "from dipole_torch.training.run_directory import lock_run_directory\n"
+        "with lock_run_directory(sys.argv[1]):\n"
+        "    print('locked', flush=True)\n"
+        "    time.sleep(600)\n"
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", holder, str(run)], stdout=subprocess.PIPE, text=True
+    )
     try:
-        assert os.read(ready_read, 6) == b"locked"
-        held = rf"another process \(pid {child} on"
+        assert child.stdout.readline().strip() == "locked"
+        held = rf"another process \(pid {child.pid} on"
         with pytest.raises(run_directory.RunDirectoryLocked, match=held):
             with run_directory.lock_run_directory(run):
                 pass
     finally:
-        os.kill(child, signal.SIGKILL)
-        os.waitpid(child, 0)
-        os.close(ready_read)
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        child.stdout.close()
     assert (run / ".lock").exists()  # the file stays; without its holder it locks nothing
     with run_directory.lock_run_directory(run):
         pass
