@@ -29,10 +29,10 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipole_torch.training.config import register
+from dipole_torch.training.hydra_compat import VERSION_BASE, instantiate
 from dipole_torch.training.resume import register_resolvers
 
 register()  # the schemas configs/ extends
@@ -44,7 +44,7 @@ OUTPUTS = ("checkpoint.pt", "results.json", "policies.pt")  # each written atomi
 CONFIGS = str(Path(__file__).parent / "configs")
 
 
-@hydra.main(version_base=None, config_path=CONFIGS, config_name="config")
+@hydra.main(config_path=CONFIGS, config_name="config", **VERSION_BASE)
 def train(cfg: DictConfig) -> dict:
     from dipole_torch.checkpoint import CheckpointError
     from dipole_torch.training import board, checks, console, resume, run_directory

@@ -13,7 +13,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from hydra.utils import instantiate  # noqa: E402
+
+from dipole_torch.training.hydra_compat import VERSION_BASE, instantiate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,7 +24,7 @@ def compose_config(*overrides: str):
     through Hydra's compose API from the package ``dipole_torch.configs``."""
     from hydra import compose, initialize_config_module
 
-    with initialize_config_module("dipole_torch.configs", version_base=None):
+    with initialize_config_module("dipole_torch.configs", **VERSION_BASE):
         return compose("config", overrides=list(overrides))
 
 

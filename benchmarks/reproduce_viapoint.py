@@ -56,7 +56,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from hydra.utils import instantiate  # noqa: E402
 from lockstep import (  # noqa: E402
     compose_config,
     load_task,
@@ -68,6 +67,7 @@ from lockstep import (  # noqa: E402
 )
 
 from dipole_torch import Dipole, Power  # noqa: E402
+from dipole_torch.training.hydra_compat import instantiate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ALGORITHMS = {"DIPOLE": "dipole", "DIPOLE (paper)": "dipole_paper", "PoWER": "power"}

@@ -489,8 +489,9 @@ def test_more_bad_config_values(override, message):
     from hydra import compose, initialize_config_dir
 
     from dipole_torch.training.checks import check_config
+    from dipole_torch.training.hydra_compat import VERSION_BASE
 
-    with initialize_config_dir(str(ROOT / "configs"), version_base=None):
+    with initialize_config_dir(str(ROOT / "configs"), **VERSION_BASE):
         cfg = compose("config", overrides=[override])
     with pytest.raises(ValueError) as error:
         check_config(cfg)

@@ -10,12 +10,12 @@ import math
 import pytest
 import torch
 from dipole_torch.tasks.viapoint import ViapointTask
-from hydra.utils import instantiate
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from test_train import compose_config, train
 from test_viapoint import route_policies
 
 from dipole_torch import Dipole
+from dipole_torch.training.hydra_compat import instantiate
 
 F64 = torch.float64
 

@@ -15,7 +15,6 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
-from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -23,6 +22,7 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 
 from dipole_torch import Dipole
 from dipole_torch.training import config as schemas
+from dipole_torch.training.hydra_compat import VERSION_BASE, instantiate
 
 schemas.register()  # (train.py does it; the tests below read the tables)
 
@@ -247,7 +247,7 @@ def test_unknown_task_on_the_command_line(tmp_path):
 
 
 def compose_config(*overrides):
-    with initialize_config_dir(str(ROOT / "configs"), version_base=None):
+    with initialize_config_dir(str(ROOT / "configs"), **VERSION_BASE):
         return compose("config", overrides=list(overrides))
 
 
@@ -292,7 +292,8 @@ def test_the_configs_extend_the_schemas_and_build_their_targets(tmp_path):
         "import sys\n"
         "from hydra import compose, initialize_config_module\n"
         "from omegaconf import OmegaConf\n"
-        "with initialize_config_module('dipole_torch.configs', version_base=None):\n"
+        "from dipole_torch.training.hydra_compat import VERSION_BASE\n"
+        "with initialize_config_module('dipole_torch.configs', **VERSION_BASE):\n"
         f"    for overrides in {options!r}:\n"
         "        cfg = compose('config', overrides=list(overrides))\n"
         "        print(OmegaConf.get_type(cfg).__name__, OmegaConf.get_type(cfg.task).__name__,\n"

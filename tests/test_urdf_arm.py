@@ -99,9 +99,9 @@ def numpy_forward_kinematics(q: np.ndarray) -> np.ndarray:
 def make_task(urdf_path, **overrides) -> ViapointTask:
     """The task of :data:`CONFIG`, instantiated by Hydra as ``train.py`` does."""
     omegaconf = pytest.importorskip("omegaconf")
-    hydra_utils = pytest.importorskip("hydra.utils")
+    compat = pytest.importorskip("dipole_torch.training.hydra_compat")
     config = omegaconf.OmegaConf.create(CONFIG.format(urdf=urdf_path))
-    return hydra_utils.instantiate(config.env, **overrides)
+    return compat.instantiate(config.env, **overrides)
 
 
 def task_arguments(urdf_path, **overrides) -> dict:
@@ -242,7 +242,7 @@ def test_readme_example_config_composes(urdf_path, tmp_path):
     from pathlib import Path
 
     hydra = pytest.importorskip("hydra")
-    hydra_utils = pytest.importorskip("hydra.utils")
+    compat = pytest.importorskip("dipole_torch.training.hydra_compat")
     import dipole_torch.configs  # noqa: F401 (registers the schemas the configs extend)
 
     root = Path(__file__).resolve().parents[1]
@@ -255,10 +255,10 @@ def test_readme_example_config_composes(urdf_path, tmp_path):
     configs = tmp_path / "configs"
     shutil.copytree(root / "configs", configs)
     (configs / "task" / "viapoint_myarm.yaml").write_text(example)
-    with hydra.initialize_config_dir(config_dir=str(configs), version_base=None):
+    with hydra.initialize_config_dir(config_dir=str(configs), **compat.VERSION_BASE):
         config = hydra.compose(config_name="config", overrides=["task=viapoint_myarm"])
     assert config.task.name == "viapoint_myarm" and config.task.trials == 300
-    task = hydra_utils.instantiate(config.task.env)
+    task = compat.instantiate(config.task.env)
     assert task.kinematics.robot_name == "four_joint_arm" and task.parameter_dim == 6
     assert task.num_alternatives == [2, 1]
     assert (

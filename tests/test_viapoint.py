@@ -173,11 +173,11 @@ def test_another_layout_without_code_changes():
 
 def test_config_instantiates():
     hydra = pytest.importorskip("hydra")
-    hydra_utils = pytest.importorskip("hydra.utils")
-    with hydra.initialize_config_module("dipole_torch.configs", version_base=None):
+    compat = pytest.importorskip("dipole_torch.training.hydra_compat")
+    with hydra.initialize_config_module("dipole_torch.configs", **compat.VERSION_BASE):
         config = hydra.compose("config", overrides=[f"task={CONFIG.stem}"])
     assert config.task.trials == 300 and config.task.n0 == 30
-    task = hydra_utils.instantiate(config.task.env)
+    task = compat.instantiate(config.task.env)
     assert isinstance(task, ViapointTask)
     assert task.parameter_dim == 9 and task.num_alternatives == [2, 2, 2]
     separation = (task.viapoints[:, 0] - task.viapoints[:, 1]).norm(dim=-1)
@@ -186,7 +186,7 @@ def test_config_instantiates():
     # pytorch-kinematics by default; the WAM's analytic path on request, same paths.
     assert type(task.kinematics) is ArmKinematics
     assert task.kinematics.urdf_path.name == "wam7.urdf" and task.kinematics.dof == 7
-    fast = hydra_utils.instantiate(config.task.env, kinematics="wam_dh")
+    fast = compat.instantiate(config.task.env, kinematics="wam_dh")
     assert isinstance(fast.kinematics, WamKinematics)
     theta = task.theta0 + 0.05 * torch.randn(4, 9, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(fast.trajectory(theta), task.trajectory(theta), atol=1e-5, rtol=0)

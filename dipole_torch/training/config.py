@@ -317,9 +317,11 @@ def print_help(argv: list[str], config_dir: str) -> None:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
+    from dipole_torch.training.hydra_compat import VERSION_BASE
+
     overrides = [a for a in argv if a not in ("--help", "-h") and not a.startswith("-")]
     register()
-    with initialize_config_dir(config_dir, version_base=None):
+    with initialize_config_dir(config_dir, **VERSION_BASE):
         cfg = compose("config", overrides=overrides)
     header = f"{_program()}: DIPOLE (Bruno et al., AAAI 2013) and PoWER in PyTorch"
     print(header + "\n\n" + help_text(OmegaConf.to_yaml(cfg)))

@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from dipole_torch.checkpoint import CheckpointError, atomic_save, load_checkpoint
 from dipole_torch.mechanisms.exploration import IGEL_TARGET_SUCCESS
 from dipole_torch.options import PAPER_INERT
+from dipole_torch.training.hydra_compat import register_resolver
 
 __all__ = [
     "CHECKPOINT_KEYS",
@@ -109,14 +110,11 @@ def register_resolvers() -> None:
     """The resolvers ``configs/config.yaml`` uses: a resumed run's Hydra run directory is the
     checkpoint's (unless ``hydra.run.dir`` is given), and Hydra's own record goes to
     ``.hydra/resume_<time>``, keeping the original run's ``.hydra/``."""
-    OmegaConf.register_new_resolver(
+    register_resolver(
         "checkpoint_dir",
         lambda resume, fresh: fresh if not resume else str(_run_dir_of(Path(resume))),
-        replace=True,
     )
-    OmegaConf.register_new_resolver(
-        "if_resumed", lambda resume, resumed, fresh: resumed if resume else fresh, replace=True
-    )
+    register_resolver("if_resumed", lambda resume, resumed, fresh: resumed if resume else fresh)
 
 
 def _run_dir_of(resume: Path) -> Path:

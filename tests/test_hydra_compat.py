@@ -1,0 +1,80 @@
+"""The Hydra and OmegaConf calls spelled for the installed releases: no deprecation warning on
+either (``.ci/prerelease-versions`` runs the suite on Hydra 1.4 and omegaconf 2.4)."""
+
+from __future__ import annotations
+
+import warnings
+
+import hydra
+import pytest
+from dipole_torch.tasks.multimodal import MultimodalTask
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from dipole_torch.training import hydra_compat
+from dipole_torch.training.hydra_compat import VERSION_BASE, instantiate, register_resolver
+
+
+@pytest.mark.parametrize(
+    "version, release",
+    [("1.3.8", (1, 3)), ("1.4.0rc3", (1, 4)), ("2.4.0.dev15", (2, 4)), ("10.12", (10, 12))],
+)
+def test_release(version, release):
+    assert hydra_compat._release(version) == release
+
+
+def test_release_of_an_unreadable_version():
+    with pytest.raises(ValueError, match="cannot read a version from 'main'"):
+        hydra_compat._release("main")
+
+
+def test_version_base_follows_the_installed_hydra():
+    major_minor = tuple(int(part) for part in hydra.__version__.split(".")[:2])
+    assert VERSION_BASE == ({} if major_minor >= (1, 4) else {"version_base": None})
+
+
+def test_compose_and_instantiate_without_warnings():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with initialize_config_module("dipole_torch.configs", **VERSION_BASE):
+            cfg = compose("config", overrides=["task=multimodal", "algo=dipole", "seed=3"])
+        task = instantiate(cfg.task.env)
+        optimizer = instantiate(
+            cfg.algo.optimizer,
+            _convert_="all",
+            theta0=task.theta0.double(),
+            sigma_start=task.sigma_start.double(),
+            n0=cfg.task.n0,
+        )
+    assert isinstance(task, MultimodalTask) and optimizer.dim == task.theta0.numel()
+    assert [str(w.message) for w in caught] == []
+
+
+def test_a_config_builds_a_target_of_its_own():
+    """The top-level target a config names is trusted (``train.py``'s config is its user's:
+    a task of one's own, docs/guide/configs.md)."""
+    config = OmegaConf.create({"_target_": "collections.OrderedDict", "a": 1})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        built = instantiate(config)
+    assert dict(built) == {"a": 1} and [str(w.message) for w in caught] == []
+
+
+@pytest.mark.skipif(not hydra_compat.HYDRA_1_4, reason="Hydra 1.4's execution whitelist")
+def test_a_target_below_the_top_must_be_the_packages():
+    from hydra.errors import InstantiationException
+
+    config = OmegaConf.create(
+        {"_target_": "collections.OrderedDict", "a": {"_target_": "os.getcwd"}}
+    )
+    with pytest.raises(InstantiationException, match="os.getcwd"):
+        instantiate(config)
+
+
+def test_register_resolver_without_warnings():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        register_resolver("dipole_test_join", lambda a, b: f"{a}+{b}")
+        register_resolver("dipole_test_join", lambda a, b: f"{a}-{b}")  # replaced
+    config = OmegaConf.create({"x": 2, "y": "${dipole_test_join:${x},3}"})
+    assert config.y == "2-3" and [str(w.message) for w in caught] == []
