@@ -50,25 +50,54 @@ def test_compose_and_instantiate_without_warnings():
     assert [str(w.message) for w in caught] == []
 
 
+class Point:
+    """A target of the config's own (this module, outside the package)."""
+
+    def __init__(self, x: float, y: float):
+        self.x, self.y = x, y
+
+
 def test_a_config_builds_a_target_of_its_own():
     """The top-level target a config names is trusted (``train.py``'s config is its user's:
     a task of one's own, docs/guide/configs.md)."""
-    config = OmegaConf.create({"_target_": "collections.OrderedDict", "a": 1})
+    config = OmegaConf.create({"_target_": f"{__name__}.Point", "x": 1.0, "y": 2.0})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         built = instantiate(config)
-    assert dict(built) == {"a": 1} and [str(w.message) for w in caught] == []
+    assert (built.x, built.y) == (1.0, 2.0) and [str(w.message) for w in caught] == []
+
+
+@pytest.mark.parametrize(
+    "target, trusted",
+    [
+        ("my_task.TwoHills", True),
+        ("dipole_torch.Dipole", True),
+        ("shutil.rmtree", False),
+        ("os.kill", False),
+        ("builtins.exit", False),
+        ("collections.OrderedDict", False),
+        ("", False),
+        (None, False),
+    ],
+)
+def test_which_top_level_targets_are_trusted_by_name(target, trusted):
+    assert hydra_compat._trusted_by_name(target) is trusted
 
 
 @pytest.mark.skipif(not hydra_compat.HYDRA_1_4, reason="Hydra 1.4's execution whitelist")
-def test_a_target_below_the_top_must_be_the_packages():
+@pytest.mark.parametrize(
+    "config",
+    [
+        {"_target_": f"{__name__}.Point", "x": {"_target_": "os.getcwd"}, "y": 0.0},
+        {"_target_": "shutil.rmtree", "path": "/no/such/dipole/dir"},
+    ],
+    ids=["below the top", "the standard library's at the top"],
+)
+def test_targets_not_trusted_are_refused(config):
     from hydra.errors import InstantiationException
 
-    config = OmegaConf.create(
-        {"_target_": "collections.OrderedDict", "a": {"_target_": "os.getcwd"}}
-    )
-    with pytest.raises(InstantiationException, match="os.getcwd"):
-        instantiate(config)
+    with pytest.raises(InstantiationException, match="os.getcwd|shutil.rmtree"):
+        instantiate(OmegaConf.create(config))
 
 
 def test_register_resolver_without_warnings():

@@ -21,6 +21,7 @@ every start (which would break the one-line errors of ``training.checks``), and 
 from __future__ import annotations
 
 import re
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -58,15 +59,27 @@ def register_resolver(name: str, resolver: Callable[..., Any]) -> None:
 
 def instantiate(config: Any, **kwargs: Any) -> Any:
     """``hydra.utils.instantiate(config, **kwargs)``, trusting ``PACKAGE_TARGETS`` and
-    ``config``'s own ``_target_`` (a task of the user's own, say).
+    ``config``'s own ``_target_`` (a task of the user's own, say) unless the standard
+    library's.
 
     Which targets to trust is for the code that reads the config to say. ``train.py``'s
     config is its user's (their config files and command line; a checkpoint's config is
     compared with it, never built), so the target it names at the top is trusted by name,
-    and the targets below it must be the package's.
+    and the targets below it must be the package's. Not one of the standard library's: a
+    task or an optimizer is never one, and some of its callables (``shutil.rmtree``,
+    ``os.kill``) are what Hydra refuses to build from a config unless trusted code names
+    them.
     """
     if not HYDRA_1_4:
         return hydra_utils.instantiate(config, **kwargs)
     target = config.get("_target_") if hasattr(config, "get") else None
-    trusted = PACKAGE_TARGETS + ((target,) if isinstance(target, str) and target else ())
+    trusted = PACKAGE_TARGETS + ((target,) if _trusted_by_name(target) else ())
     return hydra_utils.instantiate(config, _execution_whitelist_=list(trusted), **kwargs)
+
+
+def _trusted_by_name(target: Any) -> bool:
+    """Whether a config's top-level ``_target_`` may be trusted by name: a dotted path
+    outside the standard library."""
+    if not isinstance(target, str) or not target:
+        return False
+    return target.split(".", 1)[0] not in sys.stdlib_module_names
