@@ -42,3 +42,22 @@ def test_the_readme_links_and_pictures_exist():
     assert "docs/figures/figure3_routes.png" in local
     missing = [t for t in local if not (ROOT / t).exists()]
     assert not missing, f"README links to missing files: {missing}"
+
+
+def test_the_citation_file_and_the_readme_cite_the_same_paper_and_release():
+    import yaml
+
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    pyproject = (ROOT / "pyproject.toml").read_text()  # (tomllib: Python 3.11 on)
+    # The keys the Citation File Format 1.2 requires, and this release's version.
+    assert {"cff-version", "message", "title", "authors"} <= set(citation)
+    assert f'\nversion = "{citation["version"]}"\n' in pyproject
+    paper = citation["references"][0]
+    bibtex = dict(re.findall(r"(\w+)\s*=\s*\{(.*?)\},?\n", README))
+    assert f'\nPaper = "https://doi.org/{paper["doi"]}"\n' in pyproject
+    assert bibtex["doi"] == paper["doi"]
+    assert bibtex["title"] == paper["title"]
+    assert bibtex["pages"] == f"{paper['start']}--{paper['end']}"
+    assert bibtex["year"] == str(paper["year"])
+    surnames = [a.split(",")[0] for a in bibtex["author"].split(" and ")]
+    assert surnames == [a["family-names"] for a in paper["authors"]]
