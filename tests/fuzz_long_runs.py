@@ -4,6 +4,7 @@ restored three times a run: a search for the failures that only a long, successf
     python tests/fuzz_long_runs.py --seeds 100 400           # seeds 100 ... 399
     python tests/fuzz_long_runs.py --seeds 703 704 --budget 600   # one case again
     python tests/fuzz_long_runs.py --seeds 2000 3000 --minutes 30 # as many as fit
+    python tests/fuzz_long_runs.py --seeds 0 200 --optimizer power  # the PoWER baseline
 
 Not part of the test suite (a case runs 1000-6000 trials; the whole range takes hours): the
 cases it found are tests of their own (``tests/test_hardening.py``, ``test_exploration.py``).
@@ -13,7 +14,8 @@ Each seed draws, from its own ``random.Random``:
   peaks scaled by 1e150 or 1e-150, −1e6 − |θ|², a constant, steps, a sphere, or a narrow
   cone 1 − √|θ − c|;
 * half the time, a random value of every option (``DipoleOptions``), and in 15 % of the cases
-  the paper's variant instead of the default one;
+  the paper's variant instead of the default one; with ``--optimizer power``, the PoWER
+  baseline (``Power``) instead, on the same case, with random values of its own arguments;
 * 1000, 3000 or 6000 trials, a box (−4, 4) or none, Σ_start = s·I with s in {1e-3, 1, 1e3};
 * in a quarter of the cases, crashed rollouts: a return of −1e6 at about 1 % of the θ asked;
   in a quarter, glitches: a return of +1e6 at about 0.5 % of them; in a quarter, noisy
@@ -26,7 +28,8 @@ A case fails when it raises anything but the clear errors for inputs that the op
 (``ValueError``/``TypeError`` of an option set, returns that ``reward_range="positive"``
 refuses), asks an empty or non-finite batch, or ends with non-finite policy means or a
 non-finite ``best()``. Printed: one line per failure (seed, error, the case's settings, the
-traceback's end), cases slower than a minute, and the count.
+traceback's end), cases slower than a minute, and the counts of cases, failures and cases
+refused with a clear error.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ import traceback
 
 import torch
 
-from dipole_torch import Dipole
+from dipole_torch import Dipole, Power
 
 LANDSCAPES = ("multi", "plateau", "needle", "huge", "tiny", "negative", "constant", "steps",
               "sphere", "narrow")  # fmt: skip
@@ -154,14 +157,36 @@ def options(rng: random.Random) -> tuple[str, dict]:
     return variant, changes
 
 
+def power_options(rng: random.Random) -> dict:
+    """Random values of ``Power``'s own arguments (its defaults are the first choices)."""
+    return dict(
+        M=rng.choice([5, 1, 10]),
+        n0=rng.choice([None, 1, 20]),
+        reward_range=rng.choice([None, None, (-2e6, 2e6), "positive"]),
+        reward_floor=rng.choice([1e-3, 1e-9, 0.5]),
+        exploration_decay=rng.choice([1.0, 0.98, 0.5]),
+        min_exploration=rng.choice([1e-2, 1e-12, 1.0]),
+    )
+
+
+# What ``run_case`` returns for a case refused with a clear error (its options, or returns
+# its reward range cannot map): counted apart, neither a failure nor a run that went well.
+REFUSED = "refused"
+
+
 def refused_input(error: Exception) -> bool:
-    """The clear errors for returns that ``reward_range="positive"`` (the paper's default)
-    refuses: what a user is told to change, not a failure of the optimizer."""
-    return isinstance(error, ValueError) and "reward_range='positive'" in str(error)
+    """The clear errors for returns that a ``reward_range`` refuses (``"positive"``, the
+    paper's default, or a fixed range they fall outside): what a user is told to change, not
+    a failure of the optimizer."""
+    message = str(error)
+    return isinstance(error, ValueError) and (
+        "reward_range='positive'" in message or "outside reward_range" in message
+    )
 
 
-def run_case(seed: int, budget: int | None = None) -> str | None:
-    """Run one case; ``None`` if it went well, else what went wrong."""
+def run_case(seed: int, budget: int | None = None, optimizer: str = "dipole") -> str | None:
+    """Run one case of ``optimizer`` (``"dipole"`` or ``"power"``); ``None`` if it went
+    well, ``REFUSED`` if a clear error refused it, else what went wrong."""
     rng = random.Random(seed)
     d = rng.choice([1, 2, 3, 5, 9, 12])
     kind, reward = landscape(rng, d)
@@ -185,18 +210,21 @@ def run_case(seed: int, budget: int | None = None) -> str | None:
         changes = {k: v for k, v in changes.items() if k in kept}
         if kind in ("negative", "sphere", "narrow"):
             changes["reward_range"] = None
+    if optimizer == "power":  # (drawn last, as above) the PoWER baseline on the same case
+        variant = "power"
+        changes = {**power_options(rng), "best_evaluations": changes.get("best_evaluations", 1)}
     case = (f"d={d} landscape={kind} variant={variant} trials={trials} box={box} "
             f"sigma={float(sigma[0, 0]):g} options={changes}")  # fmt: skip
 
-    def build(generator_seed: int) -> Dipole:
-        make = Dipole.paper if variant == "paper" else Dipole
+    def build(generator_seed: int) -> Dipole | Power:
+        make = {"paper": Dipole.paper, "power": Power}.get(variant, Dipole)
         generator = torch.Generator().manual_seed(generator_seed)
         return make(theta0, sigma, bounds=bounds if box else None, generator=generator, **changes)
 
     try:
         opt = build(seed)
     except (ValueError, TypeError):
-        return None  # an option set the options refuse, with their message
+        return REFUSED  # an option set the options refuse, with their message
     checkpoints = [trials // 4, trials // 2, 3 * trials // 4]
     try:
         while opt.trials < trials:
@@ -220,7 +248,7 @@ def run_case(seed: int, budget: int | None = None) -> str | None:
         opt.result  # noqa: B018 (its views must build)
     except Exception as error:  # noqa: BLE001 (every other error is a finding)
         if refused_input(error):
-            return None
+            return REFUSED
         return (f"{type(error).__name__}: {str(error)[:300]} | {case}\n"
                 + traceback.format_exc()[-1500:])  # fmt: skip
     return None
@@ -230,33 +258,46 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs=2, default=[0, 20], metavar=("FIRST", "END"))
     parser.add_argument("--budget", type=int, default=None, help="trials a case (default: drawn)")
+    parser.add_argument(
+        "--optimizer",
+        choices=("dipole", "power"),
+        default="dipole",
+        help="the optimizer each case runs (power: the PoWER baseline, on the same cases)",
+    )
     parser.add_argument("--minutes", type=float, default=None, help="start no case after this")
     parser.add_argument(
         "--every", type=int, default=50, help="a line of progress every this many cases"
     )
     args = parser.parse_args()
     torch.set_num_threads(1)
-    failures = cases = 0
+    failures = cases = refused = 0
     began = time.perf_counter()
     for seed in range(*args.seeds):
         if args.minutes is not None and time.perf_counter() - began > 60 * args.minutes:
             break
         cases += 1
         start = time.perf_counter()
-        finding = run_case(seed, args.budget)
+        finding = run_case(seed, args.budget, args.optimizer)
         seconds = time.perf_counter() - start
         if seconds > 60:
             print(f"seed {seed}: slow, {seconds:.0f} s", flush=True)
-        if finding:
+        if finding == REFUSED:
+            refused += 1
+        elif finding:
             failures += 1
             print(f"seed {seed}: {finding}", flush=True)
         if cases % args.every == 0:  # (a killed run still reports how far it got)
             minutes = (time.perf_counter() - began) / 60
             print(
-                f"... {cases} cases to seed {seed}, {failures} failures, {minutes:.0f} min",
+                f"... {cases} cases to seed {seed}, {failures} failures, {refused} refused, "
+                f"{minutes:.0f} min",
                 flush=True,
             )
-    print(f"{cases} cases (seeds {args.seeds[0]}-{args.seeds[0] + cases - 1}), {failures} failures")
+    print(
+        f"{cases} cases (seeds {args.seeds[0]}-{args.seeds[0] + cases - 1}), {failures} failures, "
+        f"{refused} refused with a clear error (their options, or returns their reward range "
+        "cannot map)"
+    )
 
 
 if __name__ == "__main__":
