@@ -40,6 +40,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_iteration import make, reward, torch_calls  # noqa: E402
 from bench_whole_run import optimizer_cpu  # noqa: E402
+from setting import setting_line  # noqa: E402
 
 from dipole_torch.power import power_update  # noqa: E402
 
@@ -109,6 +110,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20000)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    print(setting_line())
     scripted = scripted_eq7()
     optimizer_cpu("IPOP-CMA-ES", 2, 8, 0, 200)  # first-call costs out of the table
     rows = []

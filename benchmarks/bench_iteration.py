@@ -38,12 +38,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 from torch.overrides import TorchFunctionMode
 
-from dipole_torch import Dipole, Power
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from setting import setting_line  # noqa: E402
+
+from dipole_torch import Dipole, Power  # noqa: E402
 
 DTYPE = torch.float64
 NAMES = ("power", "dipole", "dipole_paper", "dipole_all_sweeps")
@@ -221,6 +226,7 @@ def main() -> None:
     parser.add_argument("--count-ops", action="store_true", help="count torch calls (slower)")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    print(setting_line())
     for name in NAMES:  # first-call costs (lazy init) out of the table
         run(name, 2, 20, 0)
     header = (

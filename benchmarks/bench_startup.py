@@ -119,6 +119,9 @@ def main() -> None:
         run_cpu = statistics.median(child_cpu(command, env)[0] for command in runs)
         imports = slowest_imports([py, train, *run_args("imports", 10)], env)
 
+    from setting import setting_line  # (torch imported here, after the timed processes)
+
+    print(setting_line(("torch", "hydra-core", "omegaconf"), threads=False))
     print(f"train.py start-up, task={args.task}, CPU seconds (median of {args.repeats}):")
     print(f"  {'import torch, whole process':34s} {torch_cpu:6.2f}")
     print(f"  {'  its CPU at the end of the import':34s} {torch_inside:6.2f}")

@@ -35,6 +35,7 @@ from torch.overrides import TorchFunctionMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_iteration import make, reward  # noqa: E402
+from setting import setting_line  # noqa: E402
 
 import dipole_torch.dp.sampler as dp_sampler  # noqa: E402
 from dipole_torch.dp.conditionals import posterior_point_estimate  # noqa: E402
@@ -203,6 +204,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    print(setting_line())
     floor_seconds(8, 5, 2, 2, 3, 10, 2, False)  # first-call costs out of the table
     header = (
         f"{'D':>3} {'sweeps':>6} {'N':>7} {'K':>5} {'aux':>6} {'ms/sweep':>9} {'calls/sweep':>11} "

@@ -42,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_multioptima import OPT_IN as GRID_OPT_IN  # noqa: E402
 from bench_multioptima import RUNNERS as GRID_RUNNERS  # noqa: E402
 from bench_multioptima import Snapshots, _start, case_seeds, make_landscape  # noqa: E402
+from setting import setting_line  # noqa: E402
 
 from dipole_torch.dp.sampler import DPSampler  # noqa: E402
 
@@ -140,6 +141,7 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    print(setting_line())
     methods = [m for m in METHODS + OPT_IN if m in args.methods]
     for method in methods:  # first-call costs out of the table
         optimizer_cpu(method, 2, 2, 0, 60)

@@ -36,3 +36,19 @@ def test_the_bare_power_loop_spends_its_budget_and_climbs():
     start = landscape(0.5 * (landscape.lower + landscape.upper)[None])
     (mean, used) = bench.run_bare_power(landscape, [300], 0)[300]
     assert used == 300 and float(landscape(mean)) > float(start)
+
+
+def test_the_setting_line_names_the_cpu_the_threads_and_the_versions():
+    import platform
+
+    import torch
+
+    from benchmarks.setting import cpu_model, setting_line
+
+    line = setting_line(("torch", "no-such-distribution"))
+    assert line.startswith(f"setting: {cpu_model()} (")
+    assert f"Python {platform.python_version()}; torch {torch.__version__}" in line
+    assert line.endswith(torch.__version__)  # (a package not installed is left out)
+    threads = torch.get_num_threads()
+    assert f", {threads} torch thread{'s' if threads != 1 else ''});" in line
+    assert "torch thread" not in setting_line(("torch",), threads=False)

@@ -1,0 +1,55 @@
+"""The setting a timing was measured in, as the line a speed script prints first: the CPU,
+the kernels torch dispatches to there, torch's threads, and the versions of Python and of the
+packages timed. Ratios measured in one run compare methods on one machine; the absolute
+times, and how far DIPOLE's ratios sit from their targets, follow the machine's cost per
+torch call (docs/benchmarks/speed.md), so a figure is read beside its setting."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+import platform
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+PACKAGES = ("torch", "numpy", "cma", "pynmmso")
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux's ``/proc/cpuinfo``; elsewhere what ``platform`` knows)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() in ("model name", "Model", "Hardware") and value.strip():
+                return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "an unknown CPU"
+
+
+def _version(package: str) -> str | None:
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def setting_line(packages: Sequence[str] = PACKAGES, threads: bool = True) -> str:
+    """``"setting: <CPU> (<cores> cores, torch's <capability> kernels[, <n> torch thread(s)]);
+    Python <version>; <package> <version>, ..."``, the packages that are installed.
+
+    Args:
+        packages: the distributions whose versions to name (those not installed are left out).
+        threads: name torch's threads in this process (a script that times other processes
+            passes ``False``).
+    """
+    cpu = f"{os.cpu_count()} cores, torch's {torch.backends.cpu.get_cpu_capability()} kernels"
+    if threads:
+        count = torch.get_num_threads()
+        cpu += f", {count} torch thread{'s' if count != 1 else ''}"
+    versions = [f"{p} {v}" for p in packages if (v := _version(p)) is not None]
+    return f"setting: {cpu_model()} ({cpu}); Python {platform.python_version()}; " + ", ".join(
+        versions
+    )
