@@ -79,7 +79,6 @@ import argparse
 import contextlib
 import functools
 import importlib
-import importlib.metadata
 import json
 import math
 import multiprocessing
@@ -98,7 +97,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dipole_torch import Dipole, Power
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from setting import version  # noqa: E402
+
+from dipole_torch import Dipole, Power  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DTYPE = torch.float64
@@ -744,7 +746,7 @@ def _stamped(task: Callable[[tuple], dict], item: tuple) -> dict:
 
 def write_report(path: Path, config: dict, wall: float, summary: dict, cases: list) -> None:
     """The JSON report: ``config`` (with the peers' versions), wall time, summary, cases."""
-    versions = {p: _version(p) for p in ("torch", "cma", "pynmmso")}
+    versions = {p: version(p) for p in ("torch", "cma", "pynmmso")}
     report = {
         "config": config | {"versions": versions, "machine": machine()},
         "wall_seconds": round(wall, 1),
@@ -809,13 +811,6 @@ def machine() -> dict[str, str | int]:
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch_threads": torch.get_num_threads(),
     }
-
-
-def _version(package: str) -> str | None:
-    try:
-        return importlib.metadata.version(package)
-    except importlib.metadata.PackageNotFoundError:
-        return None
 
 
 def main(argv: Sequence[str] | None = None) -> None:

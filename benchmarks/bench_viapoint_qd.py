@@ -273,7 +273,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     parser.add_argument("--workers", type=int, default=2, help="processes")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
-    from bench_multioptima import _version, add_keep_others, machine, run_keeping_others
+    from bench_multioptima import add_keep_others, machine, run_keeping_others
+    from setting import version
 
     add_keep_others(parser)
     args = parser.parse_args(argv)
@@ -299,7 +300,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     text, summary = summarize(cases, methods, budgets)
     print(text)
     print(f"wall time {wall:.1f} s on {args.workers} process(es)")
-    versions = {package: _version(package) for package in ("torch", "ribs")}
+    versions = {package: version(package) for package in ("torch", "ribs")}
     report = {
         "config": {"seeds": args.seeds, "budgets": budgets, "methods": methods,
                    "levels": list(LEVELS), "versions": versions, "machine": machine(),

@@ -29,7 +29,8 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "an unknown CPU"
 
 
-def _version(package: str) -> str | None:
+def version(package: str) -> str | None:
+    """The installed version of the distribution ``package``, ``None`` if it is not installed."""
     try:
         return importlib.metadata.version(package)
     except importlib.metadata.PackageNotFoundError:
@@ -49,7 +50,7 @@ def setting_line(packages: Sequence[str] = PACKAGES, threads: bool = True) -> st
     if threads:
         count = torch.get_num_threads()
         cpu += f", {count} torch thread{'s' if count != 1 else ''}"
-    versions = [f"{p} {v}" for p in packages if (v := _version(p)) is not None]
+    versions = [f"{p} {v}" for p in packages if (v := version(p)) is not None]
     return f"setting: {cpu_model()} ({cpu}); Python {platform.python_version()}; " + ", ".join(
         versions
     )
