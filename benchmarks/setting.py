@@ -50,7 +50,9 @@ def setting_line(packages: Sequence[str] = PACKAGES, threads: bool = True) -> st
     if threads:
         count = torch.get_num_threads()
         cpu += f", {count} torch thread{'s' if count != 1 else ''}"
-    versions = [f"{p} {v}" for p in packages if (v := version(p)) is not None]
+    # torch's own string names its build (+cpu, +cu130), which its distribution's may not.
+    found = {p: torch.__version__ if p == "torch" else version(p) for p in packages}
+    versions = [f"{p} {v}" for p, v in found.items() if v is not None]
     return f"setting: {cpu_model()} ({cpu}); Python {platform.python_version()}; " + ", ".join(
         versions
     )
