@@ -82,7 +82,6 @@ import importlib
 import json
 import math
 import multiprocessing
-import platform
 import random
 import sys
 import time
@@ -98,7 +97,7 @@ import torch
 from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from setting import version  # noqa: E402
+from setting import machine, version  # noqa: E402
 
 from dipole_torch import Dipole, Power  # noqa: E402
 
@@ -799,18 +798,6 @@ def kept_cases(path: Path, grid: dict, methods: Sequence[str]) -> list:
                 f"{value}: run every method instead"
             )
     return [c for c in report["cases"] if c["method"] not in methods]
-
-
-def machine() -> dict[str, str | int]:
-    """What the runs' floating-point results depend on beyond the code and the seeds: the
-    architecture, the CPU kernels torch dispatches to (``AVX512``, ``AVX2``, …) and its
-    threads. Long runs of the same seed on another CPU diverge once a rounding differs (see
-    docs/benchmarks/index.md, *Reproducing the numbers*)."""
-    return {
-        "architecture": platform.machine(),
-        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "torch_threads": torch.get_num_threads(),
-    }
 
 
 def main(argv: Sequence[str] | None = None) -> None:

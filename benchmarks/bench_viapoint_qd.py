@@ -273,8 +273,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
     parser.add_argument("--workers", type=int, default=2, help="processes")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
-    from bench_multioptima import add_keep_others, machine, run_keeping_others
-    from setting import version
+    from bench_multioptima import add_keep_others, run_keeping_others
+    from setting import machine, version
 
     add_keep_others(parser)
     args = parser.parse_args(argv)
