@@ -49,7 +49,12 @@ def train(cfg: DictConfig) -> dict:
     from dipole_torch.checkpoint import CheckpointError
     from dipole_torch.training import board, checks, console, resume, run_directory
     from dipole_torch.training.block import block_the_route
-    from dipole_torch.training.results import policy_summary, repeat_summary, write_results
+    from dipole_torch.training.results import (
+        policy_set_summary,
+        policy_summary,
+        repeat_summary,
+        write_results,
+    )
     from dipole_torch.training.signals import StopRequest
 
     with checks.reported():
@@ -147,8 +152,7 @@ def train(cfg: DictConfig) -> dict:
                 history.append(writer.log_iteration(optimizer))
                 progress.update(optimizer.trials, theta.shape[0], history[-1])
                 if cfg.figure_every and len(history) % cfg.figure_every == 0:
-                    figure = board.policy_figure(task, optimizer)
-                    writer.figure("search/figure", figure, optimizer.trials)
+                    writer.policy_set(task, optimizer)  # the figure, the task's scalars
                     figure_trials = optimizer.trials
                 if len(history) % cfg.checkpoint_every == 0 and not last_batch_cut:
                     save_checkpoint()
@@ -166,7 +170,7 @@ def train(cfg: DictConfig) -> dict:
 
         # Results.
         if figure_trials != optimizer.trials:  # the final policies, unless just drawn
-            writer.figure("search/figure", board.policy_figure(task, optimizer), optimizer.trials)
+            writer.policy_set(task, optimizer)
         best_theta, best_reward = optimizer.best()
         results = {
             "task": cfg.task.name,
@@ -178,6 +182,7 @@ def train(cfg: DictConfig) -> dict:
             "best_reward": best_reward,
             "best_theta": best_theta.tolist(),
             "policies": policy_summary(task, optimizer),
+            **policy_set_summary(task, optimizer),
             **repeat_summary(optimizer),
             **({"block": blocked} if blocked is not None else {}),
             "history": {key: [row[key] for row in history] for key in history[0]}
@@ -185,7 +190,8 @@ def train(cfg: DictConfig) -> dict:
             else {},
         }
         write_results(out, results, optimizer)
-        writer.hparams(cfg, best_reward, len(results["policies"]))
+        policy_set = results.get("policy_set", {})
+        writer.hparams(cfg, best_reward, len(results["policies"]), policy_set.get("scalars"))
         writer.close()
     log.info("\n" + console.summary(cfg.algo.name, cfg.task.name, results, out))
     return results

@@ -53,6 +53,17 @@ class EpisodicTask(abc.ABC):
         takes); ``theta: [K, D]``. Empty strings by default."""
         return [""] * theta.shape[0]
 
+    def policy_scalars(self, theta: Tensor) -> dict[str, float]:
+        """Figures of merit of the policies ``theta: [K, D]`` taken together (e.g. how many
+        of the viapoint task's routes they take), for TensorBoard's ``task/<name>`` tags,
+        the HPARAMS tab's metrics and ``results.json``. None by default."""
+        return {}
+
+    def describe_policy_set(self, theta: Tensor) -> str:
+        """A line on the policies ``theta: [K, D]`` taken together for the end-of-run summary
+        (e.g. the routes they take); empty by default."""
+        return ""
+
     def plot_policies(self, theta: Tensor):
         """A matplotlib figure of the policies ``theta: [K, D]`` for TensorBoard, or ``None``
         (the default) when the task has nothing to draw."""

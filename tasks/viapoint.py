@@ -19,7 +19,7 @@ from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
 from dipole_torch.tasks.base import EpisodicTask
 from torch import Tensor
 
-__all__ = ["ENGINES", "KINEMATICS", "Obstacle", "ViapointTask"]
+__all__ = ["ENGINES", "FOUND_RETURN", "KINEMATICS", "Obstacle", "ViapointTask"]
 
 KINEMATICS = ("pytorch_kinematics", "wam_dh")  # the choices of ViapointTask(kinematics=...)
 ENGINES = ("auto", "numpy", "torch")  # the choices of ViapointTask(engine=...)
@@ -27,6 +27,7 @@ WAM_START_POSTURE = (0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0)  # rad, elbow bent, tool
 # m: a target or viapoint that inverse kinematics from the start posture ends farther from
 # than this gets a warning at construction.
 UNREACHED_DISTANCE = 1e-3
+FOUND_RETURN = 0.9  # the return at which a policy's route counts as found (Figure 3)
 
 
 class Obstacle(TypedDict):
@@ -666,6 +667,33 @@ class ViapointTask(EpisodicTask):
                 routes, rewards.tolist(), nearest, ends, depths, strict=True
             )
         ]
+
+    def routes_found(self, theta: Tensor, threshold: float = FOUND_RETURN) -> list[tuple[int, ...]]:
+        """The distinct routes, sorted, taken by the rows of ``theta: [K, 3K']`` whose path
+        returns at least ``threshold`` (a route is "found" at return ≥ 0.9, as
+        ``benchmarks/reproduce_viapoint.py`` counts them)."""
+        with torch.no_grad():
+            path = self.trajectory(theta)
+            returns = self.reward(path).tolist()
+            routes = self.viapoint_distances(path).argmin(-1).tolist()
+        return sorted(
+            {tuple(r) for r, value in zip(routes, returns, strict=True) if value >= threshold}
+        )
+
+    def policy_scalars(self, theta: Tensor) -> dict[str, float]:
+        """``{"routes": n}``: the number of distinct routes the policies ``theta: [K, 3K']``
+        take at return ≥ 0.9 (``routes_found``), the measure of the paper's Figure 3."""
+        return {"routes": float(len(self.routes_found(theta)))}
+
+    def describe_policy_set(self, theta: Tensor) -> str:
+        """E.g. ``3 of the 8 routes at return ≥ 0.9: below / near / above; …`` for the
+        policies ``theta: [K, 3K']``."""
+        found = self.routes_found(theta)
+        total = math.prod(self.num_alternatives)
+        names = "; ".join(self.route_name(route) for route in found)
+        return f"{len(found)} of the {total} routes at return ≥ {FOUND_RETURN:g}" + (
+            f": {names}" if found else ""
+        )
 
     def plot_policies(self, theta: Tensor, labels: Sequence[str] | None = None, title=None):
         """A 3-D matplotlib figure of the end-effector paths the arm makes for the policies

@@ -112,16 +112,35 @@ def test_train_log_holds_the_log_lines_and_the_summary(finished_run):
     assert f"in {results['trials']} trials (budget 80)" in log
     assert "[train][INFO]" in log  # Hydra's file format: time, logger, level
     assert log.count("  policy ") == len(results["policies"])
+    assert "policy_set" not in results and " routes at return" not in log  # (viapoint's)
 
 
-def test_each_policy_figure_is_logged_once(tmp_path):
-    """A figure every iteration, and the final one not drawn again at the same trial count."""
+def test_each_policy_figure_is_logged_once_with_the_tasks_scalars(tmp_path):
+    """A figure every iteration, and the final one not drawn again at the same trial count;
+    the viapoint task's ``task/routes`` with each, in the HPARAMS metrics, in results.json
+    and in the summary."""
     train("task=viapoint", "trials=40", "task.n0=30", "figure_every=1", f"hydra.run.dir={tmp_path}")
     results = json.loads((tmp_path / "results.json").read_text())
     events = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"images": 0})
     events.Reload()
     steps = [event.step for event in events.Images("search/figure")]
     assert steps == results["history"]["trials"] and steps[-1] == results["trials"] == 40
+    # With the figure, the task's scalars of the policies: the routes they take.
+    routes = events.Scalars("task/routes")
+    assert [event.step for event in routes] == steps
+    found = results["policy_set"]["scalars"]["routes"]
+    assert routes[-1].value == found and 0 <= found <= 8
+    good = {
+        p["description"].split(":")[0] for p in results["policies"] if p["return_of_mean"] >= 0.9
+    }
+    assert found == len(good)  # the distinct routes of the policies at return ≥ 0.9
+    description = results["policy_set"]["description"]
+    assert description.startswith(f"{found:.0f} of the 8 routes at return ≥ 0.9")
+    assert description in (tmp_path / "train.log").read_text()  # the summary's last lines
+    content = events.PluginTagToContent("hparams")
+    experiment = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/experiment"])
+    metrics = {m.name.tag for m in experiment.experiment.metric_infos}
+    assert metrics == {"reward/best_so_far", "search/policies", "task/routes"}
 
 
 def test_the_summary_is_on_stdout(tmp_path):

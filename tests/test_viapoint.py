@@ -339,6 +339,25 @@ def test_describe_and_plot_policies(task):
     matplotlib.pyplot.close(figure)
 
 
+def test_the_routes_the_policies_take_together(task):
+    """``routes_found`` counts distinct routes at return ≥ 0.9: a route taken twice counts
+    once, a policy below 0.9 (θ0, the straight line, ~0.78) none."""
+    thetas, routes = route_policies(task)
+    chosen = thetas[[3, 0, 3, 5]]  # routes (0, 1, 1), (0, 0, 0), (0, 1, 1), (1, 0, 1)
+    with_start = torch.cat([chosen, task.theta0[None]])
+    assert task.routes_found(with_start) == [(0, 0, 0), (0, 1, 1), (1, 0, 1)]
+    assert task.policy_scalars(with_start) == {"routes": 3.0}
+    assert task.routes_found(task.theta0[None]) == []
+    straight = tuple(task.route(task.theta0[None])[0].tolist())
+    assert task.routes_found(task.theta0[None], threshold=0.5) == [straight]
+    assert task.routes_found(thetas) == routes  # all 8
+    assert task.describe_policy_set(with_start) == (
+        "3 of the 8 routes at return ≥ 0.9: below / near / below; below / far / above; "
+        "above / near / above"
+    )
+    assert task.describe_policy_set(task.theta0[None]) == "0 of the 8 routes at return ≥ 0.9"
+
+
 def figure_layout_problems(figure, margins: bool = True) -> list[str]:
     """What makes a rendered policy figure hard to read in a TensorBoard card: wider than a
     card, more than 5 ticks on an axis, the legend or the title over an axis' ticks or

@@ -12,10 +12,13 @@ TensorBoard's Time Series tab opens on the returns:
   relative to Σ_start's (``relative_std``; it shrinks geometrically as they converge);
   ``search/rewards``: histogram of the policies' returns;
   ``search/figure``: the task's policy figure, where it has one;
+* ``task/<name>``: the task's scalars of the policies taken together
+  (``EpisodicTask.policy_scalars``; the viapoint task's ``task/routes``), with the figure;
 * ``world/before``, ``world/after``, ``world/block``: the block experiment (viapoint_blocked).
 
 The Custom Scalars tab shows the returns in one chart. The HPARAMS tab gets the flattened
-config with the final ``reward/best_so_far`` and ``search/policies`` (no scalars of its own).
+config with the final ``reward/best_so_far``, ``search/policies`` and ``task/<name>`` (no
+scalars of its own).
 The resolved config is the ``config`` text.
 """
 
@@ -106,12 +109,31 @@ class Board:
         if figure is not None:
             self.writer.add_figure(tag, figure, step)
 
+    def policy_set(self, task, optimizer) -> dict[str, float]:
+        """The task's figure of the policy means (``search/figure``) and its scalars of
+        them taken together (``task/<name>``, e.g. ``task/routes``), at the trial count;
+        returns the scalars."""
+        means = optimizer.policy_means.to(task.device, task.dtype)
+        with torch.no_grad():
+            scalars = task.policy_scalars(means)
+        for name, value in scalars.items():
+            self.writer.add_scalar(f"task/{name}", value, optimizer.trials)
+        self.figure("search/figure", policy_figure(task, optimizer), optimizer.trials)
+        return scalars
+
     def text(self, tag: str, text: str, step: int) -> None:
         self.writer.add_text(tag, text.replace("\n", "  \n"), step)
 
-    def hparams(self, cfg: DictConfig, best_reward: float, num_policies: int) -> None:
+    def hparams(
+        self,
+        cfg: DictConfig,
+        best_reward: float,
+        num_policies: int,
+        task_scalars: dict[str, float] | None = None,
+    ) -> None:
         """The HPARAMS tab: the flattened config (``algo.optimizer.alpha``, …), with the run's
-        final ``reward/best_so_far`` and ``search/policies`` as its metrics."""
+        final ``reward/best_so_far``, ``search/policies`` and the task's ``task/<name>``
+        scalars (``policy_set``'s) as its metrics."""
         config = flatten(OmegaConf.to_container(cfg, resolve=True))
         # TensorBoard takes numbers, strings and booleans: lists and null as text.
         values = {
@@ -121,6 +143,7 @@ class Board:
         from torch.utils.tensorboard.summary import hparams
 
         metrics = {"reward/best_so_far": best_reward, "search/policies": num_policies}
+        metrics.update({f"task/{name}": value for name, value in (task_scalars or {}).items()})
         for summary in hparams(values, metrics):
             self.writer.file_writer.add_summary(summary)
 

@@ -10,7 +10,7 @@ import torch
 from dipole_torch import Dipole
 from dipole_torch.checkpoint import atomic_save, atomic_write_text
 
-__all__ = ["policy_summary", "repeat_summary", "write_results"]
+__all__ = ["policy_set_summary", "policy_summary", "repeat_summary", "write_results"]
 
 
 def policy_summary(task, optimizer) -> list[dict]:
@@ -37,6 +37,20 @@ def policy_summary(task, optimizer) -> list[dict]:
         }
         for k in range(optimizer.num_policies)
     ]
+
+
+def policy_set_summary(task, optimizer) -> dict:
+    """``{"policy_set": {"scalars": ..., "description": ...}}``: the task's scalars of the
+    final policy means taken together (``EpisodicTask.policy_scalars``, e.g. the viapoint
+    task's ``routes``) and its line on them (``describe_policy_set``); ``{}`` for a task
+    with neither."""
+    means = optimizer.policy_means.to(task.device, task.dtype)
+    with torch.no_grad():
+        scalars = task.policy_scalars(means)
+        description = task.describe_policy_set(means)
+    if not scalars and not description:
+        return {}
+    return {"policy_set": {"scalars": scalars, "description": description}}
 
 
 def mean_evaluations(optimizer) -> int:
