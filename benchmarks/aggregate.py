@@ -22,7 +22,9 @@ with the keys that differ. Settings that do not change a run's numbers (``progre
 
 Writes ``<out>/<task>.png`` per task and ``<out>/aggregate.json``: per task the trials grid
 and, per curve, its seeds, run directories, and the mean and std over seeds of ``best``,
-``average`` and ``best_so_far`` on the grid, and the final values. A run directory without
+``average`` and ``best_so_far`` on the grid, and the final values, with the task's figures of
+each run's final policies taken together where it has them (``final_policy_set``: on the
+viapoint task the routes found, mean and std over runs). A run directory without
 ``results.json`` (still running, failed or killed) is an error unless ``--allow-incomplete``,
 which leaves it out and lists it in the JSON.
 """
@@ -71,6 +73,9 @@ class Run:
     budget: int  # the config's trial budget
     settings: dict  # the flattened, resolved config, less IGNORED
     history: np.ndarray  # rows [trials, best, mean, best_so_far, num_policies]
+    # The task's figures of the final policies taken together (results.json's
+    # policy_set.scalars; the viapoint task: routes), {} where the task has none.
+    policy_scalars: dict[str, float]
 
 
 def find_run_dirs(root: Path) -> list[Path]:
@@ -123,7 +128,11 @@ def load_run(directory: Path) -> Run | None:
         for key, value in flatten(config).items()
         if not any(key == skip or key.startswith(f"{skip}.") for skip in IGNORED)
     }
-    return Run(directory, task, algo, int(config["seed"]), int(config["trials"]), settings, history)
+    scalars = results.get("policy_set", {}).get("scalars", {})
+    return Run(
+        directory, task, algo, int(config["seed"]), int(config["trials"]), settings, history,
+        {name: float(value) for name, value in scalars.items()},
+    )  # fmt: skip
 
 
 def load_runs(roots: list[Path], allow_incomplete: bool) -> tuple[list[Run], list[Path]]:
@@ -192,6 +201,22 @@ def _curve_stats(values: np.ndarray) -> dict:
     return {"mean": values.mean(0).round(4).tolist(), "std": values.std(0).round(4).tolist()}
 
 
+def _final_scalars(curve: list[Run]) -> dict:
+    """Per scalar of the task's final policy set (e.g. the viapoint task's ``routes``): its
+    mean and std over the runs that report it, at each run's end (its own budget, not the
+    grid's last point), and how many runs those are."""
+    names = sorted({name for run in curve for name in run.policy_scalars})
+    stats = {}
+    for name in names:
+        values = np.array([run.policy_scalars[name] for run in curve if name in run.policy_scalars])
+        stats[name] = {
+            "mean": float(values.mean()),
+            "std": float(values.std()),
+            "runs": len(values),
+        }
+    return stats
+
+
 def aggregate(roots: list[Path], out: Path, grid_step: int, allow_incomplete: bool) -> dict:
     runs, incomplete = load_runs(roots, allow_incomplete)
     groups = group_runs(runs)
@@ -236,13 +261,18 @@ def aggregate(roots: list[Path], out: Path, grid_step: int, allow_incomplete: bo
                     }
                     for k, kind in enumerate(("best", "average"))
                 },
+                "final_policy_set": _final_scalars(curve),
             }
             final = entry["curves"][label]
+            together = "".join(
+                f", {name} {stats['mean']:.3g} ± {stats['std']:.2g} ({stats['runs']} runs)"
+                for name, stats in final["final_policy_set"].items()
+            )
             print(
                 f"{task:>12} {label:>30}: {len(curve):3d} runs, at {grid[-1]} trials best "
                 f"{final['final_best']['mean']:.4g} ± {final['final_best']['std']:.3g}, "
                 f"average {final['final_average']['mean']:.4g} ± "
-                f"{final['final_average']['std']:.3g}"
+                f"{final['final_average']['std']:.3g}{together}"
             )
         colors, spare = {}, iter(MORE_COLORS * (1 + len(curves) // len(MORE_COLORS)))
         used = set()

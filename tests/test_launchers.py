@@ -140,8 +140,16 @@ def test_slurm_config_makes_a_one_cpu_array_job(tmp_path):
 # ---- aggregate.py on hand-made run directories ---------------------------------------------
 
 
-def fake_run(directory: Path, seed: int, *, decay: float = 1.0, finished: bool = True) -> None:
-    """A run directory as train.py leaves it: PoWER on the multimodal task, budget 20."""
+def fake_run(
+    directory: Path,
+    seed: int,
+    *,
+    decay: float = 1.0,
+    finished: bool = True,
+    policy_set: dict | None = None,
+) -> None:
+    """A run directory as train.py leaves it: PoWER on the multimodal task, budget 20;
+    ``policy_set``: results.json's figures of the final policies taken together."""
     (directory / ".hydra").mkdir(parents=True)
     config = {
         "task": {"name": "multimodal", "trials": 300, "n0": 10},
@@ -165,6 +173,7 @@ def fake_run(directory: Path, seed: int, *, decay: float = 1.0, finished: bool =
                 "best_so_far": best,
                 "num_policies": [1] * len(trials),
             },
+            **({} if policy_set is None else {"policy_set": policy_set}),
         }
         (directory / "results.json").write_text(json.dumps(results))
 
@@ -189,6 +198,23 @@ def test_aggregate_splits_a_hyperparameter_sweep_into_curves(tmp_path):
         # best at trials 10, 15, 20 is seed + t/100: its mean over seeds 0..2 is 1 + t/100.
         assert curve["best"]["mean"] == pytest.approx([1.10, 1.15, 1.20])
         assert curve["best"]["std"] == pytest.approx([np.std([0, 1, 2])] * 3, abs=1e-4)
+
+
+def test_aggregate_gives_the_final_policy_sets_figures_over_the_runs(tmp_path, capsys):
+    """results.json's ``policy_set`` scalars (the viapoint task's routes) at each run's end:
+    mean and std over the runs that report them."""
+    for seed, routes in enumerate((3.0, 2.0, 4.0)):
+        scalars = {"scalars": {"routes": routes}, "description": f"{routes:.0f} of the 8 routes"}
+        fake_run(tmp_path / "sweep" / f"seed{seed}", seed, policy_set=scalars)
+    summary = aggregate.aggregate([tmp_path / "sweep"], tmp_path / "out", 5, False)
+    (curve,) = summary["tasks"]["multimodal"]["curves"].values()
+    stats = curve["final_policy_set"]["routes"]
+    assert stats == {"mean": 3.0, "std": pytest.approx(np.std([3, 2, 4])), "runs": 3}
+    assert "routes 3 ± 0.82 (3 runs)" in capsys.readouterr().out
+    fake_run(tmp_path / "plain" / "seed0", 0)  # a task with none
+    summary = aggregate.aggregate([tmp_path / "plain"], tmp_path / "out2", 5, False)
+    (curve,) = summary["tasks"]["multimodal"]["curves"].values()
+    assert curve["final_policy_set"] == {}
 
 
 def test_aggregate_errors_name_the_problem(tmp_path, capsys):
