@@ -8,6 +8,10 @@ import torch
 from dipole_torch.tasks.base import EpisodicTask
 from torch import Tensor
 
+# The noise-free return at which a policy has found an optimum: within 0.14 bump widths
+# (0.035 at the default width 0.25) of its centre.
+FOUND_RETURN = 0.99
+
 
 class MultimodalTask(EpisodicTask):
     """Reward with ``num_optima`` equally high Gaussian bumps, one policy evaluation a trial.
@@ -96,12 +100,40 @@ class MultimodalTask(EpisodicTask):
         theta = self.check_theta(theta)
         return torch.cdist(theta, self.optima).argmin(-1)
 
-    def evaluate(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``[B]`` returns of ``theta: [B, D]``."""
+    def height(self, theta: Tensor) -> Tensor:
+        """``[B]`` the noise-free return of ``theta: [B, D]``: the highest bump's height."""
         theta = self.check_theta(theta)
         sq = torch.cdist(theta, self.optima).square().amin(-1)
-        reward = torch.exp(-sq / (2 * self.width**2))
+        return torch.exp(-sq / (2 * self.width**2))
+
+    def evaluate(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``[B]`` returns of ``theta: [B, D]``."""
+        reward = self.height(theta)
         if self.noise_std > 0:
             noise = torch.randn(reward.shape, generator=generator, device=self.device)
             reward = (reward + self.noise_std * noise).clamp(0.0, 1.0)
         return reward
+
+    def optima_found(self, theta: Tensor) -> list[int]:
+        """The optima, by index, sorted, that some row of ``theta: [K, D]`` has found: its
+        noise-free return at least ``FOUND_RETURN`` (within 0.14 bump widths of the centre)."""
+        with torch.no_grad():
+            found = self.height(theta) >= FOUND_RETURN
+            return sorted(set(self.nearest_optimum(theta)[found].tolist()))
+
+    def describe_policies(self, theta: Tensor) -> list[str]:
+        """``optimum 2, return 0.9993`` for each row of ``theta: [K, D]``: the nearest
+        optimum and the noise-free return."""
+        with torch.no_grad():
+            nearest, heights = self.nearest_optimum(theta).tolist(), self.height(theta).tolist()
+        return [f"optimum {i}, return {h:.4g}" for i, h in zip(nearest, heights, strict=True)]
+
+    def policy_scalars(self, theta: Tensor) -> dict[str, float]:
+        """``{"optima": n}``: the optima the policies ``theta: [K, D]`` have found."""
+        return {"optima": float(len(self.optima_found(theta)))}
+
+    def describe_policy_set(self, theta: Tensor) -> str:
+        """E.g. ``3 of the 4 optima at return ≥ 0.99: 0, 1, 3``."""
+        found = self.optima_found(theta)
+        listed = ": " + ", ".join(map(str, found)) if found else ""
+        return f"{len(found)} of the {len(self.optima)} optima at return ≥ {FOUND_RETURN:g}{listed}"

@@ -1,5 +1,7 @@
 """DIPOLE finds several optima of the toy task where PoWER settles on (at most) one."""
 
+import math
+
 import pytest
 import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
@@ -51,3 +53,20 @@ def test_multimodal_task_basics():
         task.evaluate(torch.zeros(4, 2))
     with pytest.raises(ValueError, match="dim must be in"):
         MultimodalTask(dim=7)
+
+
+def test_the_optima_the_policies_find_together():
+    """An optimum is found by a policy whose noise-free return is at least 0.99 (within
+    0.14 bump widths of it), counted once however many policies sit on it."""
+    task = MultimodalTask(dim=2, num_optima=4, noise_std=0.3)  # (noise: not in the count)
+    width = task.width
+    near = task.optima[[2, 0, 2]] + torch.tensor([[0.1 * width, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    beyond = task.optima[[3]] + torch.tensor([[0.2 * width, 0.0]])  # return 0.980
+    policies = torch.cat([near, beyond, task.theta0[None]])
+    assert task.optima_found(policies) == [0, 2]
+    assert task.policy_scalars(policies) == {"optima": 2.0}
+    assert task.describe_policy_set(policies) == "2 of the 4 optima at return ≥ 0.99: 0, 2"
+    assert task.describe_policy_set(task.theta0[None]) == "0 of the 4 optima at return ≥ 0.99"
+    lines = task.describe_policies(policies)
+    assert lines[1] == "optimum 0, return 1" and lines[3] == "optimum 3, return 0.9802"
+    assert lines[0] == f"optimum 2, return {math.exp(-0.005):.4g}"

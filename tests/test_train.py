@@ -99,7 +99,8 @@ def test_hparams_hold_the_config_and_the_final_metrics(finished_run):
     assert hparams["resume"].string_value == "null"
     experiment = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/experiment"])
     metrics = {m.name.tag for m in experiment.experiment.metric_infos}
-    assert metrics == {"reward/best_so_far", "search/policies"}  # the run's own scalars
+    # The run's own scalars, and the task's of its final policies (the optima found).
+    assert metrics == {"reward/best_so_far", "search/policies", "task/optima"}
     best = events.Scalars("reward/best_so_far")[-1]
     assert best.value == pytest.approx(results["best_reward"]) and best.step == results["trials"]
     assert events.Scalars("search/policies")[-1].value == len(results["policies"])
@@ -112,7 +113,12 @@ def test_train_log_holds_the_log_lines_and_the_summary(finished_run):
     assert f"in {results['trials']} trials (budget 80)" in log
     assert "[train][INFO]" in log  # Hydra's file format: time, logger, level
     assert log.count("  policy ") == len(results["policies"])
-    assert "policy_set" not in results and " routes at return" not in log  # (viapoint's)
+    # The task's line on the policies together: the optima they found.
+    found = {
+        p["description"].split(",")[0] for p in results["policies"] if p["return_of_mean"] >= 0.99
+    }
+    assert results["policy_set"]["scalars"] == {"optima": len(found)} and found
+    assert f"{len(found)} of the 4 optima at return ≥ 0.99: " in log
 
 
 def test_each_policy_figure_is_logged_once_with_the_tasks_scalars(tmp_path):
@@ -146,7 +152,7 @@ def test_each_policy_figure_is_logged_once_with_the_tasks_scalars(tmp_path):
 def test_the_summary_is_on_stdout(tmp_path):
     out = train("algo=power", "trials=20", f"hydra.run.dir={tmp_path}").stdout
     assert "power on multimodal: best return" in out and "in 20 trials (budget 20)" in out
-    assert "  policy 0: return" in out and f"outputs in {tmp_path}" in out
+    assert "  policy 0: optimum " in out and f"outputs in {tmp_path}" in out
     assert "[INFO]" not in out  # plain lines on stdout; train.log has time and level
 
 
