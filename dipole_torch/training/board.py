@@ -109,17 +109,15 @@ class Board:
         if figure is not None:
             self.writer.add_figure(tag, figure, step)
 
-    def policy_set(self, task, optimizer) -> dict[str, float]:
+    def policy_set(self, task, optimizer) -> None:
         """The task's figure of the policy means (``search/figure``) and its scalars of
-        them taken together (``task/<name>``, e.g. ``task/routes``), at the trial count;
-        returns the scalars."""
+        them taken together (``task/<name>``, e.g. ``task/routes``), at the trial count."""
         means = optimizer.policy_means.to(task.device, task.dtype)
         with torch.no_grad():
             scalars = task.policy_scalars(means)
         for name, value in scalars.items():
             self.writer.add_scalar(f"task/{name}", value, optimizer.trials)
         self.figure("search/figure", policy_figure(task, optimizer), optimizer.trials)
-        return scalars
 
     def text(self, tag: str, text: str, step: int) -> None:
         self.writer.add_text(tag, text.replace("\n", "  \n"), step)
