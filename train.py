@@ -50,6 +50,7 @@ def train(cfg: DictConfig) -> dict:
     from dipole_torch.training import board, checks, console, resume, run_directory
     from dipole_torch.training.block import block_the_route
     from dipole_torch.training.results import (
+        check_task_hooks,
         policy_set_summary,
         policy_summary,
         repeat_summary,
@@ -75,6 +76,7 @@ def train(cfg: DictConfig) -> dict:
         # The task, the optimizer and their generators.
         with checks.reported("task.env"):
             task = instantiate(cfg.task.env)
+            check_task_hooks(task)  # what it says of a policy set can be logged
         generator = torch.Generator().manual_seed(cfg.seed)  # the optimizer's draws
         task_generator = torch.Generator().manual_seed(cfg.seed + 1_000_003)  # the starts
         reward_range = tuple(task.reward_range) if cfg.algo.use_task_reward_range else None

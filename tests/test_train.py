@@ -4,6 +4,7 @@ resume, multirun, typed configs and --help, config errors."""
 import dataclasses
 import itertools
 import json
+import math
 import os
 import re
 import subprocess
@@ -11,8 +12,10 @@ import sys
 import typing
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from dipole_torch.tasks.multimodal import MultimodalTask
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
@@ -22,6 +25,7 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 
 from dipole_torch import Dipole
 from dipole_torch.training import config as schemas
+from dipole_torch.training import results as run_results
 from dipole_torch.training.hydra_compat import VERSION_BASE, instantiate
 
 schemas.register()  # (train.py does it; the tests below read the tables)
@@ -537,3 +541,66 @@ def test_a_box_from_the_command_line_holds_every_sample(tmp_path):
         instantiate(
             cfg.algo.optimizer, _convert_="all", theta0=torch.zeros(2), sigma_start=torch.eye(2)
         )
+
+
+class NoisyToy(MultimodalTask):
+    """The toy task with figures of a policy set as a user's own task might give them."""
+
+    def __init__(self, scalars, line=""):
+        super().__init__()
+        self.scalars, self.line = scalars, line
+
+    def policy_scalars(self, theta):
+        return self.scalars
+
+    def describe_policy_set(self, theta):
+        return self.line
+
+
+def test_the_tasks_figures_of_a_policy_set_are_numbers_or_a_clear_error():
+    """Tensors and numpy numbers become floats (results.json is strict JSON); a value that
+    is not a finite number, a name that is not a string, a line that is not a str: an
+    error naming the task's method and the name, raised by the check a run makes first."""
+    theta = torch.zeros(2, 2)
+    toy = NoisyToy({"optima": torch.tensor(3), "spread": np.float32(0.5)}, "two hills")
+    assert run_results.task_scalars(toy, theta) == {"optima": 3.0, "spread": 0.5}
+    assert run_results.policy_set_line(toy, theta) == "two hills"
+    run_results.check_task_hooks(toy)
+    for scalars, error, message in [
+        ({"optima": "four"}, TypeError, "NoisyToy.policy_scalars: 'optima' must be a number"),
+        ({"optima": torch.ones(2)}, TypeError, "'optima' must be a number, got tensor"),
+        ({"optima": math.nan}, ValueError, "'optima' must be finite, got nan"),
+        ({3: 1.0}, TypeError, "a name must be a non-empty string, got 3"),
+        ([1.0], TypeError, "must return a dict of names to numbers, got [1.0]"),
+    ]:
+        with pytest.raises(error) as raised:
+            run_results.check_task_hooks(NoisyToy(scalars))
+        assert message in str(raised.value)
+    with pytest.raises(TypeError, match="NoisyToy.describe_policy_set must return a str, got 3"):
+        run_results.check_task_hooks(NoisyToy({}, line=3))
+
+
+def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_path, monkeypatch):
+    (tmp_path / "bad_task.py").write_text(
+        "from dipole_torch.tasks.multimodal import MultimodalTask\n\n\n"
+        "class Bad(MultimodalTask):\n"
+        "    def policy_scalars(self, theta):\n"
+        "        return {'optima': 'several'}\n"
+    )
+    (tmp_path / "bad_configs" / "task").mkdir(parents=True)
+    (tmp_path / "bad_configs" / "task" / "bad.yaml").write_text(
+        "defaults:\n  - /dipole_torch_task@_here_\n  - _self_\n"
+        "name: bad\ntrials: 20\nn0: 10\nenv:\n  _target_: bad_task.Bad\n"
+    )
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    run = tmp_path / "run"
+    result = train(
+        "hydra.searchpath=[file://bad_configs]", "task=bad", f"hydra.run.dir={run}",
+        cwd=tmp_path, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert (
+        "error: task.env: Bad.policy_scalars: 'optima' must be a number, got 'several'"
+        in result.stderr
+    )
+    assert not (run / "checkpoint.pt").exists()  # before the first trial

@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from dipole_torch.training.results import task_scalars
 from dipole_torch.training.resume import flatten
 
 __all__ = ["Board"]
@@ -113,9 +114,7 @@ class Board:
         """The task's figure of the policy means (``search/figure``) and its scalars of
         them taken together (``task/<name>``, e.g. ``task/routes``), at the trial count."""
         means = optimizer.policy_means.to(task.device, task.dtype)
-        with torch.no_grad():
-            scalars = task.policy_scalars(means)
-        for name, value in scalars.items():
+        for name, value in task_scalars(task, means).items():
             self.writer.add_scalar(f"task/{name}", value, optimizer.trials)
         self.figure("search/figure", policy_figure(task, optimizer), optimizer.trials)
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
@@ -10,7 +12,15 @@ import torch
 from dipole_torch import Dipole
 from dipole_torch.checkpoint import atomic_save, atomic_write_text
 
-__all__ = ["policy_set_summary", "policy_summary", "repeat_summary", "write_results"]
+__all__ = [
+    "check_task_hooks",
+    "policy_set_line",
+    "policy_set_summary",
+    "policy_summary",
+    "repeat_summary",
+    "task_scalars",
+    "write_results",
+]
 
 
 def policy_summary(task, optimizer) -> list[dict]:
@@ -39,15 +49,56 @@ def policy_summary(task, optimizer) -> list[dict]:
     ]
 
 
+def task_scalars(task, theta: torch.Tensor) -> dict[str, float]:
+    """``task.policy_scalars(theta)`` (``theta: [K, D]`` on the task's device and dtype) as
+    finite floats by name: what TensorBoard and ``results.json`` (strict JSON) take. A task's
+    own method may return tensors or numpy numbers; anything else, or a value that is not
+    finite, is a ``TypeError`` / ``ValueError`` naming the method and the name."""
+    where = f"{type(task).__name__}.policy_scalars"
+    with torch.no_grad():
+        scalars = task.policy_scalars(theta)
+    if not isinstance(scalars, Mapping):
+        raise TypeError(f"{where} must return a dict of names to numbers, got {scalars!r}")
+    numbers = {}
+    for name, value in scalars.items():
+        if not isinstance(name, str) or not name:
+            raise TypeError(f"{where}: a name must be a non-empty string, got {name!r}")
+        try:
+            number = float(value)  # (a one-element tensor or numpy number converts too)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{where}: {name!r} must be a number, got {value!r}") from None
+        if not math.isfinite(number):
+            raise ValueError(f"{where}: {name!r} must be finite, got {number}")
+        numbers[name] = number
+    return numbers
+
+
+def policy_set_line(task, theta: torch.Tensor) -> str:
+    """``task.describe_policy_set(theta)``, checked to be a string."""
+    with torch.no_grad():
+        line = task.describe_policy_set(theta)
+    if not isinstance(line, str):
+        raise TypeError(
+            f"{type(task).__name__}.describe_policy_set must return a str, got {line!r}"
+        )
+    return line
+
+
+def check_task_hooks(task) -> None:
+    """Call the task's figures of a policy set once on θ0 alone, at the start of a run: a
+    method that returns what a run cannot log stops the run there, not at its end."""
+    theta0 = task.theta0.reshape(1, -1).to(task.device, task.dtype)
+    task_scalars(task, theta0)
+    policy_set_line(task, theta0)
+
+
 def policy_set_summary(task, optimizer) -> dict:
     """``{"policy_set": {"scalars": ..., "description": ...}}``: the task's scalars of the
     final policy means taken together (``EpisodicTask.policy_scalars``, e.g. the viapoint
     task's ``routes``) and its line on them (``describe_policy_set``); ``{}`` for a task
     with neither."""
     means = optimizer.policy_means.to(task.device, task.dtype)
-    with torch.no_grad():
-        scalars = task.policy_scalars(means)
-        description = task.describe_policy_set(means)
+    scalars, description = task_scalars(task, means), policy_set_line(task, means)
     if not scalars and not description:
         return {}
     return {"policy_set": {"scalars": scalars, "description": description}}
