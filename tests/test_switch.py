@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 import torch
@@ -178,7 +179,12 @@ def test_train_blocks_reevaluates_and_goes_on(blocked_run):
     assert {"world/before", "world/after", "search/figure"} <= set(events.Tags()["images"])
     assert events.Images("world/before")[0].step == block["trial"]
     assert [e.step for e in events.Scalars("reward/best_so_far")] == history["trials"]
-    assert "block at" in (blocked_run / "train.log").read_text()
+    log = (blocked_run / "train.log").read_text()
+    assert "block at" in log
+    # The routes the stored policies take, before the block and after it.
+    before = re.search(r"before the block: (\d) of the 8 routes at return ≥ 0.9", log)
+    after = re.search(r"after it: (\d) of the 8 routes at return ≥ 0.9", log)
+    assert before and after and int(after[1]) <= int(before[1]), log
 
 
 def test_a_resumed_blocked_run_continues_exactly(blocked_run, tmp_path):

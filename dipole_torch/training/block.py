@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 from dipole_torch.training.board import Board, policy_figure
+from dipole_torch.training.results import policy_set_line
 
 __all__ = ["block_the_route"]
 
@@ -17,7 +18,8 @@ def block_the_route(task, optimizer, block, board: Board, generator):
     The optimizer evaluates its stored policies once each in the new world and is told
     (``reevaluate``, K trials): its best policy becomes the one it executes, the policies the
     obstacle hurt search again. Logs the policies' paths before and after (``world/before``,
-    ``world/after``) and what happened (``world/block``).
+    ``world/after``) and what happened (``world/block``: the obstacle, each policy re-evaluated
+    and, where the task describes a policy set, the routes they take before and after).
 
     Args:
         task: the viapoint task (``blocking_obstacle``, ``with_obstacles``).
@@ -35,6 +37,7 @@ def block_the_route(task, optimizer, block, board: Board, generator):
     title = f"before the block: {len(means)} policies after {trial} trials"
     board.figure("world/before", policy_figure(task, optimizer, title), trial)
     obstacle, description = task.blocking_obstacle(means, block.radius, block.threshold)
+    known = policy_set_line(task, means)  # e.g. the routes the policies take, before
     task = task.with_obstacles([*task.obstacles, obstacle])
     returns = task.evaluate(means, generator=generator)
     optimizer.reevaluate(returns)
@@ -46,6 +49,11 @@ def block_the_route(task, optimizer, block, board: Board, generator):
         f"block at {trial} trials: {description}; the {len(means)} stored policies "
         f"re-evaluated (now {optimizer.trials} trials), switching to policy {switched}:"
         + "".join(f"\n  policy {k}: {line}" for k, line in zip(ids, lines, strict=True))
+        + (
+            f"\nbefore the block: {known}\nafter it: {policy_set_line(task, means)}"
+            if known
+            else ""
+        )
     )
     log.info(report)
     board.text("world/block", report, optimizer.trials)
