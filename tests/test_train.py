@@ -568,6 +568,7 @@ def test_the_tasks_figures_of_a_policy_set_are_numbers_or_a_clear_error():
     run_results.check_task_hooks(toy)
     for scalars, error, message in [
         ({"optima": "four"}, TypeError, "NoisyToy.policy_scalars: 'optima' must be a number"),
+        ({"optima": "4"}, TypeError, "'optima' must be a number, got '4'"),
         ({"optima": torch.ones(2)}, TypeError, "'optima' must be a number, got tensor"),
         ({"optima": math.nan}, ValueError, "'optima' must be finite, got nan"),
         ({3: 1.0}, TypeError, "a name must be a non-empty string, got 3"),

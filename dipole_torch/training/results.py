@@ -64,6 +64,8 @@ def task_scalars(task, theta: torch.Tensor) -> dict[str, float]:
         if not isinstance(name, str) or not name:
             raise TypeError(f"{where}: a name must be a non-empty string, got {name!r}")
         try:
+            if isinstance(value, str | bytes):  # (float() would read "3")
+                raise TypeError
             number = float(value)  # (a one-element tensor or numpy number converts too)
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"{where}: {name!r} must be a number, got {value!r}") from None
