@@ -544,7 +544,7 @@ def test_a_box_from_the_command_line_holds_every_sample(tmp_path):
         )
 
 
-class NoisyToy(MultimodalTask):
+class ToyWithFigures(MultimodalTask):
     """The toy task with figures of a policy set as a user's own task might give them."""
 
     def __init__(self, scalars, line=""):
@@ -563,12 +563,12 @@ def test_the_tasks_figures_of_a_policy_set_are_numbers_or_a_clear_error():
     is not a finite number, a name that is not a string, a line that is not a str: an
     error naming the task's method and the name, raised by the check a run makes first."""
     theta = torch.zeros(2, 2)
-    toy = NoisyToy({"optima": torch.tensor(3), "spread": np.float32(0.5)}, "two hills")
+    toy = ToyWithFigures({"optima": torch.tensor(3), "spread": np.float32(0.5)}, "two hills")
     assert run_results.task_scalars(toy, theta) == {"optima": 3.0, "spread": 0.5}
     assert run_results.policy_set_line(toy, theta) == "two hills"
     run_results.check_task_hooks(toy)
     for scalars, error, message in [
-        ({"optima": "four"}, TypeError, "NoisyToy.policy_scalars: 'optima' must be a number"),
+        ({"optima": "four"}, TypeError, "ToyWithFigures.policy_scalars: 'optima' must be a number"),
         ({"optima": "4"}, TypeError, "'optima' must be a number, got '4'"),
         ({"optima": torch.ones(2)}, TypeError, "'optima' must be a number, got tensor"),
         ({"optima": math.nan}, ValueError, "'optima' must be finite, got nan"),
@@ -576,10 +576,11 @@ def test_the_tasks_figures_of_a_policy_set_are_numbers_or_a_clear_error():
         ([1.0], TypeError, "must return a dict of names to numbers, got [1.0]"),
     ]:
         with pytest.raises(error) as raised:
-            run_results.check_task_hooks(NoisyToy(scalars))
+            run_results.check_task_hooks(ToyWithFigures(scalars))
         assert message in str(raised.value)
-    with pytest.raises(TypeError, match="NoisyToy.describe_policy_set must return a str, got 3"):
-        run_results.check_task_hooks(NoisyToy({}, line=3))
+    message = "ToyWithFigures.describe_policy_set must return a str, got 3"
+    with pytest.raises(TypeError, match=message):
+        run_results.check_task_hooks(ToyWithFigures({}, line=3))
 
 
 def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_path, monkeypatch):
