@@ -61,3 +61,20 @@ def test_the_citation_file_and_the_readme_cite_the_same_paper_and_release():
     assert bibtex["year"] == str(paper["year"])
     surnames = [a.split(",")[0] for a in bibtex["author"].split(" and ")]
     assert surnames == [a["family-names"] for a in paper["authors"]]
+
+
+def test_ci_builds_the_docs_strictly_without_hiding_the_warnings():
+    # mkdocs --quiet hides the warnings that --strict counts: a strict build then passes with
+    # them (it once passed with two broken links of the changelog).
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    build = [line for line in ci if "mkdocs build" in line]
+    assert build and all("--strict" in line and "--quiet" not in line for line in build), build
+
+
+def test_the_changelog_has_no_relative_links():
+    # CHANGELOG.md is read at the repository root and, included in docs/changelog.md, on the
+    # docs site, where a relative link resolves from docs/: no relative path works in both.
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    targets = re.findall(r"\]\(([^)]+)\)", changelog)
+    relative = [t for t in targets if not t.startswith(("http://", "https://"))]
+    assert not relative, f"CHANGELOG.md links relative paths: {relative}"
