@@ -94,7 +94,7 @@ def train(cfg: DictConfig) -> dict:
         history, elapsed, blocked = [], 0.0, None  # elapsed: wall time of earlier sessions
         if checkpoint is not None:
             history, elapsed, blocked = resume.restore(
-                checkpoint, cfg.resume, optimizer, task_generator, shape
+                checkpoint, cfg.resume, optimizer, task_generator, shape, cfg.trials
             )
             if blocked is not None:  # the checkpoint's world: with the obstacle
                 task = task.with_obstacles([*task.obstacles, blocked["obstacle"]])

@@ -70,6 +70,26 @@ def test_the_summary_names_each_policy_once_by_id():
     assert "; 1 policy (its mean, without exploration):" in one
 
 
+def test_on_noisy_returns_a_description_is_followed_by_the_mean_that_orders_it():
+    results = {
+        "best_reward": 0.99,
+        "trials": 500,
+        "trial_budget": 500,
+        "repeats": {"best_evaluations": 4, "returns": "noisy", "best_reward_evaluations": 4},
+        "policies": [
+            {"id": 1, "return_of_mean": 0.95, "description": "route a: return 0.999"},
+            {"id": 2, "return_of_mean": 0.97, "description": "route b: return 0.93"},
+            {"id": 3, "return_of_mean": 0.5, "description": ""},
+        ],
+    }
+    lines = summary("dipole", "viapoint", results, "x").splitlines()
+    assert lines[1:4] == [
+        "  policy 2: route b: return 0.93 (the mean of 4: 0.97)",
+        "  policy 1: route a: return 0.999 (the mean of 4: 0.95)",
+        "  policy 3: return 0.5",
+    ]
+
+
 def test_one_policy_is_one_policy_in_the_log_lines(caplog):
     caplog.set_level(logging.INFO, logger="train")
     progress = Progress(100, 0, stream=io.StringIO())

@@ -14,6 +14,7 @@ import math
 import os
 import random
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -415,6 +416,29 @@ def test_resume_refuses_a_different_config_naming_the_keys(finished_run, overrid
     for key in keys:
         assert key in str(error.value)
     assert "The checkpoint's run resumes with: python" in str(error.value)
+
+
+def test_the_resume_command_of_another_task_names_the_task_not_its_keys(finished_run):
+    # The checkpoint's task (multimodal) against task=cartpole: every task.* key differs, and
+    # task=multimodal in the command brings them all back; the command lists none of them.
+    with pytest.raises(CheckpointError, match="must match") as error:
+        run_train(f"resume={finished_run / 'checkpoint.pt'}", "trials=60", "task=cartpole")
+    command = str(error.value).split("The checkpoint's run resumes with: ")[1]
+    assert "task=multimodal" in command and "task." not in command, command
+
+
+def test_resume_refuses_a_budget_below_the_checkpoints_trials(finished_run, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(finished_run, copy)
+    held = load_checkpoint(copy / "checkpoint.pt")["optimizer"]["trials"]
+    results = (copy / "results.json").read_bytes()
+    with pytest.raises(CheckpointError, match=f"trials={held - 1}: its run holds {held} trials"):
+        run_train(f"resume={copy / 'checkpoint.pt'}", f"trials={held - 1}")
+    assert (copy / "results.json").read_bytes() == results  # nothing written
+    # At the checkpoint's own trials nothing runs and the results are its (a session killed
+    # after its last checkpoint and before its results resumes so).
+    run_train(f"resume={copy / 'checkpoint.pt'}", f"trials={held}")
+    assert json.loads((copy / "results.json").read_text())["trials"] == held
 
 
 @pytest.mark.parametrize(

@@ -213,8 +213,11 @@ def test_power_on_the_blocked_task(tmp_path):
     assert results["trials"] == 50 and math.isfinite(results["best_reward"])
 
 
-def test_a_block_before_the_first_batch_is_refused():
+def test_a_block_before_the_first_batch_or_at_the_budget_is_refused():
     from dipole_torch.training.checks import check_config
 
     with pytest.raises(ValueError, match="task.block.trial=10 is below task.n0=30"):
         check_config(compose_config("task=viapoint_blocked", "task.block.trial=10"))
+    # A block at or after the budget would never come: the run would look like plain viapoint.
+    with pytest.raises(ValueError, match="task.block.trial=300 is not below trials=300"):
+        check_config(compose_config("task=viapoint_blocked", "trials=300"))

@@ -77,6 +77,13 @@ def check_config(cfg: DictConfig) -> None:
             f"task.block.trial={block.trial} is below task.n0={cfg.task.n0}: the block "
             "re-evaluates learned policies, after the first batch at least",
         )
+    if block is not None and block.trial >= cfg.trials:
+        raise ConfigValueError(
+            "task.block.trial",
+            block.trial,
+            f"task.block.trial={block.trial} is not below trials={cfg.trials}: the run would "
+            "end before the world changes; give a larger trials= or a smaller task.block.trial",
+        )
     if cfg.resume is not None and not cfg.resume:
         raise ConfigValueError(
             "resume", cfg.resume, f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}"

@@ -69,7 +69,9 @@ class Progress:
 def summary(name: str, task_name: str, results: dict, out) -> str:
     """The run's last lines: the best return, then each policy (by its id, best first) with
     the task's description of it, or its return where the task has none, and the task's line
-    on the policies taken together, where it has one."""
+    on the policies taken together, where it has one. On noisy returns a policy's return is
+    the mean of as many rollouts as the best return's, which orders the policies; a task's
+    description, one rollout, is followed by it."""
     policies = results["policies"]
     averaged = results.get("repeats", {}).get("best_reward_evaluations", 1)
     mean = f" (the mean of {averaged})" if averaged > 1 else ""
@@ -81,6 +83,8 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
     ]
     for policy in sorted(policies, key=lambda p: -p["return_of_mean"]):
         described = policy["description"] or f"return {_number(policy['return_of_mean'])}"
+        if policy["description"] and averaged > 1:  # the task's one rollout, then the order's
+            described += f" (the mean of {averaged}: {_number(policy['return_of_mean'])})"
         lines.append(f"  policy {policy['id']}: {described}")
     together = results.get("policy_set", {}).get("description")
     if together:  # the task's line on them all (the viapoint task: the routes found)

@@ -249,20 +249,27 @@ def _mismatch(path: str, differences: list, overrides: list[str] | None) -> str:
     if overrides is None:
         return message + "Give the run's own settings."
     # The run's own command, plus the value it had of every key whose default has moved
-    # since (the group choices are in the command already).
+    # since (the group choices are in the command already, and with them the keys of a group
+    # chosen otherwise now: task=cartpole against a viapoint run differs in all of task.*).
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    regrouped = tuple(key.removesuffix("name") for key, *_ in differences if key.endswith(".name"))
     moved = [
         f"{key}={json.dumps(saved)}"
         for key, saved, _ in differences
-        if key not in given and not key.endswith(".name") and saved != "<missing>"
+        if key not in given
+        and not key.endswith(".name")
+        and not key.startswith(regrouped)
+        and saved != "<missing>"
     ]
     return message + f"The checkpoint's run resumes with: {resume_command(overrides + moved, path)}"
 
 
-def restore(checkpoint: dict, path: str, optimizer, task_generator, shape: dict):
+def restore(checkpoint: dict, path: str, optimizer, task_generator, shape: dict, budget: int):
     """Load the checkpoint's optimizer and episode-generator states; return its history,
     elapsed wall time and block (``None``: the world did not change). ``shape``: this
-    config's task dimension and reward range, which must be the checkpoint's."""
+    config's task dimension and reward range, which must be the checkpoint's; ``budget``:
+    this config's ``trials``, at least the checkpoint's (at the checkpoint's, nothing runs
+    and the results are written from it: a session killed before it wrote them)."""
     saved = {key: checkpoint.get(key, shape[key]) for key in shape}
     saved["reward_range"] = saved["reward_range"] and tuple(saved["reward_range"])
     if saved != shape:
@@ -276,6 +283,11 @@ def restore(checkpoint: dict, path: str, optimizer, task_generator, shape: dict)
         raise CheckpointError(
             f"{path!r} does not fit this optimizer ({type(error).__name__}: {error})"
         ) from None
+    if optimizer.trials > budget:
+        raise CheckpointError(
+            f"cannot resume {path!r} with trials={budget}: its run holds {optimizer.trials} "
+            f"trials already, and a run cannot go back; give trials={optimizer.trials} or more"
+        )
     return checkpoint["history"], float(checkpoint.get("wall_time_s", 0.0)), checkpoint.get("block")
 
 
