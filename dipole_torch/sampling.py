@@ -1,10 +1,11 @@
 """Reproducible draws from ``torch.distributions`` objects with an explicit ``torch.Generator``.
 
 ``Distribution.sample`` reads the global RNG and takes no generator. The library must never
-touch the global RNG (DESIGN.md), yet every draw goes through a distribution object. So a draw
-forks the global RNG of the distribution's device, seeds it from the caller's generator, samples,
-and restores the global state: the result depends on the generator alone, and the caller's own
-global-RNG stream is left exactly as it was.
+touch the global RNG (a caller's ``torch.manual_seed`` stream stays the caller's), yet every
+draw goes through a distribution object. So a draw forks the global RNG of the distribution's
+device, seeds it from the caller's generator, samples, and restores the global state: the
+result depends on the generator alone, and the caller's own global-RNG stream is left exactly
+as it was.
 
 The (inverse-)Wishart draws of the Gibbs sweep are the exception: they are made directly from
 the generator by Bartlett's decomposition (``inverse_wishart``, ``wishart``), because

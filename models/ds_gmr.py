@@ -34,8 +34,8 @@ Choices:
   regression term Σ_xt Σ_tt⁻¹ (t − μ_i^t) vanishes and x̂(t) is the h-weighted average of the
   centres; the spatial block only matters for the (unused) conditional covariance.
 * K_V = 2 √K_P is the critical damping of ẍ + K_V ẋ + K_P x = 0 (discriminant K_V² − 4 K_P = 0).
-  ``DESIGN.md`` writes √(2 K_P), which is under-damped (ζ = 1/√2); we use the critically
-  damped value.
+  √(2 K_P), also met in descriptions of DS-GMR, is under-damped (ζ = 1/√2); we use the
+  critically damped value.
 * Integration: semi-implicit (symplectic) Euler with a fixed ``dt``, a batched torch loop over
   time; every operation is differentiable in θ.
 """

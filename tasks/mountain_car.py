@@ -87,7 +87,7 @@ class MountainCarTask(ControlTask):
     * ``engine``: ``"python"`` (one episode at a time in Python floats, double precision,
       stopped at the goal), ``"torch"`` (one batched rollout in ``dtype`` on ``device``) or
       ``"auto"`` (the default: ``"torch"`` on an accelerator or with ``compile``, else
-      ``"python"``), as ``dipole_torch.tasks.cartpole.CartPoleTask``'s.
+      ``"python"``).
     * ``compile``, ``chunk``: run the torch rollout in chunks of ``chunk`` (10) steps, each
       through ``torch.compile`` when ``compile`` is true (as
       ``dipole_torch.tasks.cartpole.CartPoleTask``).
