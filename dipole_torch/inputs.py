@@ -87,21 +87,40 @@ def as_covariance(sigma_start, theta0: Tensor) -> Tensor:
             )
         if bool((sigma <= 0).any()):
             raise ValueError(f"sigma_start's stds must be positive, got {sigma.tolist()}")
-        return torch.diag_embed(sigma.square().expand(d))
+        return _in_range(torch.diag_embed(sigma.square().expand(d)))
     if sigma.shape != (d, d):
         raise ValueError(
             f"sigma_start must have shape [{d}, {d}] (a covariance), [{d}] (stds) or [] "
             f"(one std), got {list(sigma.shape)}"
         )
     check_positive_definite(sigma, "sigma_start")
-    return sigma
+    return _in_range(sigma)
+
+
+# Σ_start's variances: within float64's range with room for the products the DP prior and
+# the factorisations form (a std of 1e154 squares to 1e308, and its prior overflows; one of
+# 1e-155 to a subnormal that no Cholesky survives).
+VARIANCE_RANGE = (1e-300, 1e300)
+
+
+def _in_range(covariance: Tensor) -> Tensor:
+    """``covariance`` if its variances lie in ``VARIANCE_RANGE``."""
+    variances = covariance.diagonal()
+    low, high = VARIANCE_RANGE
+    if not bool(((variances >= low) & (variances <= high)).all()):
+        raise ValueError(
+            f"sigma_start's variances must lie between {low:g} and {high:g} (stds between "
+            f"{low**0.5:g} and {high**0.5:g}), got {float(variances.min()):.3g} to "
+            f"{float(variances.max()):.3g}: express θ in units closer to 1"
+        )
+    return covariance
 
 
 def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
     """``(lower [D], upper [D])`` in float64 on ``theta0``'s device from ``bounds`` =
-    ``(lower, upper)``, each a number, a list of D numbers or a ``[D]`` tensor (±inf: that
-    side is open), or ``None`` (no box). Raises ``ValueError`` unless lower < upper on every
-    axis and θ0 lies inside."""
+    ``(lower, upper)``, each a number, a list of D numbers, a numpy array or a ``[D]``
+    tensor (±inf: that side is open), or ``None`` (no box). Raises ``ValueError`` unless
+    lower < upper on every axis and θ0 lies inside."""
     if bounds is None:
         return None
     try:
@@ -111,11 +130,13 @@ def make_box(bounds: Bounds, theta0: Tensor) -> tuple[Tensor, Tensor] | None:
     d = theta0.shape[0]
     box = []
     for name, value in (("lower", low), ("upper", high)):
+        if isinstance(value, np.ndarray) and value.dtype.kind in "iuf":  # as θ0 takes them
+            value = torch.as_tensor(value.astype(np.float64))
         numbers_ = isinstance(value, list | tuple) and all(_is_number(v) for v in value)
         if isinstance(value, bool) or not (isinstance(value, int | float | Tensor) or numbers_):
             raise TypeError(
-                f"bounds' {name} must be a number, a list of D numbers or a [D] tensor, "
-                f"got {value!r}"
+                f"bounds' {name} must be a number, a list of D numbers, a numpy array or a [D] "
+                f"tensor, got {value!r}"
             )
         edge = torch.as_tensor(value, dtype=DTYPE, device=theta0.device)
         if edge.dim() == 0:
@@ -165,23 +186,32 @@ def check_in_box(box: tuple[Tensor, Tensor] | None, theta: Tensor) -> None:
         )
 
 
-def told_as_asked(asked: Tensor, theta: Tensor) -> bool:
-    """Whether ``theta [B, D]`` is exactly the first B rows of ``asked [B', D]``, compared in
-    the told dtype (an asked row cast to float32 is the same row). Rows told as asked lie in
-    the box as the asked ones do (rounding to the told dtype keeps the order of the box's
-    edges), so ``check_in_box`` need not look at them."""
+def _compared(asked: Tensor, theta: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The first B rows of ``asked`` and ``theta [B, D]`` in the narrower of the told dtype
+    and the dtype the rows were handed out in, ``dtype``: a float32 row told back as float64,
+    or a float64 row told as float32, is the row asked."""
+    narrower = theta.dtype if torch.finfo(theta.dtype).eps >= torch.finfo(dtype).eps else dtype
     theta = theta.detach()
-    return torch.equal(asked[: theta.shape[0]].to(device=theta.device, dtype=theta.dtype), theta)
+    asked = asked[: theta.shape[0]].to(device=theta.device, dtype=narrower)
+    return asked, theta.to(narrower)
 
 
-def check_asked(asked: Tensor, theta: Tensor) -> None:
+def told_as_asked(asked: Tensor, theta: Tensor, dtype: torch.dtype | None = None) -> bool:
+    """Whether ``theta [B, D]`` is exactly the first B rows of ``asked [B', D]``, handed out
+    in ``dtype`` (default: the told dtype), compared in the narrower dtype of the two (an
+    asked row cast to float32 is the same row). Rows told as asked lie in the box as the
+    asked ones do (rounding keeps the order of the box's edges), so ``check_in_box`` need not
+    look at them."""
+    return torch.equal(*_compared(asked, theta, theta.dtype if dtype is None else dtype))
+
+
+def check_asked(asked: Tensor, theta: Tensor, dtype: torch.dtype | None = None) -> None:
     """Raise ``ValueError`` naming the first told row of ``theta [B, D]`` that is not the
-    asked one, ``asked [B', D]``, B ≤ B' (compared in the told dtype: an asked row cast to
-    float32 and back is the same row)."""
-    if told_as_asked(asked, theta):  # the usual case, in one comparison
+    asked one, ``asked [B', D]``, B ≤ B', handed out in ``dtype`` (compared as in
+    ``told_as_asked``: an asked row cast to float32 and back is the same row)."""
+    if told_as_asked(asked, theta, dtype):  # the usual case, in one comparison
         return
-    theta = theta.detach()
-    asked = asked[: theta.shape[0]].to(device=theta.device, dtype=theta.dtype)
+    asked, theta = _compared(asked, theta, theta.dtype if dtype is None else dtype)
     different = (asked != theta).any(-1)
     if bool(different.any()):
         row = int(different.nonzero()[0])

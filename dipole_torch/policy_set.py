@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from dipole_torch.memo import Memo
+from dipole_torch.validation import check_finite, check_positive_definite
 
 __all__ = ["PolicyField", "PolicySet"]
 
@@ -68,6 +69,8 @@ class PolicySet:
         )
 
     def __getattr__(self, name: str) -> Tensor:
+        if name.startswith("_"):  # copy and pickle look for _tensors before it is set
+            raise AttributeError(name)
         try:
             return self._tensors[name]
         except KeyError:
@@ -199,6 +202,9 @@ class PolicySet:
                 )
             dtype = torch.bool if name == "active" else self._tensors[name].dtype
             loaded[name] = value.to(device=device, dtype=dtype)
+        check_finite(loaded["means"], "state_dict['policy_means']")
+        if k:
+            check_positive_definite(loaded["covariances"], "state_dict['policy_covariances']")
         self._tensors.update(loaded)
         ids = loaded["ids"]
         next_id = int(state.get("next_policy_id", int(ids.max()) + 1 if ids.numel() else 0))

@@ -76,8 +76,8 @@ class PolicySearch:
         reward_floor: smallest reward weight.
         generator: ``torch.Generator`` for every draw (default: seeded from torch's global
             generator, as torch's own samplers follow ``torch.manual_seed``).
-        bounds: ``(lower, upper)``, each a number, a list of D numbers or a ``[D]`` tensor
-            (±inf leaves a side open), or ``None``.
+        bounds: ``(lower, upper)``, each a number, a list of D numbers, a numpy array or a
+            ``[D]`` tensor (±inf leaves a side open), or ``None``.
 
     Attributes:
         trials: reward evaluations told so far (the x-axis of the paper's plots).
@@ -204,8 +204,8 @@ class PolicySearch:
         weights = self.archive.counts(self.num_policies).to(DTYPE).clamp_min(1.0)
         from dipole_torch.gaussian_mixture import GaussianMixture
 
-        mixture = GaussianMixture(
-            weights, self.policy_means, self.policy_covariances, validate_args=False
+        mixture = GaussianMixture(  # on copies: editing it leaves the run be
+            weights, self.policy_means.clone(), self.policy_covariances.clone(), validate_args=False
         )
         if self.dtype != DTYPE:
             mixture.scale_tril  # noqa: B018 (factorised here, carried by .to())
@@ -220,7 +220,7 @@ class PolicySearch:
         Otherwise (and until then) the best single return told."""
         averaged = self.repeats.best_averaged
         theta, value = (self._best_theta, self._best_reward) if averaged is None else averaged
-        return theta.to(self.dtype), value
+        return theta.to(self.dtype, copy=True), value  # a copy: editing it leaves the run be
 
     def stop(self, max_trials: int | None = None) -> dict[str, str]:
         """The stopping criteria met (pycma's ``stop()``): empty while the run should go on.
@@ -244,11 +244,11 @@ class PolicySearch:
             best_reward=best_reward,
             trials=self.trials,
             iterations=self.iteration,
-            means=self.policy_means.to(self.dtype),
-            covariances=self.policy_covariances.to(self.dtype),
-            best_rewards=self.policy_best_rewards,
+            means=self.policy_means.to(self.dtype, copy=True),  # copies: a snapshot
+            covariances=self.policy_covariances.to(self.dtype, copy=True),
+            best_rewards=self.policy_best_rewards.clone(),
             active=self.active.clone(),
-            converged=self.converged,
+            converged=self.converged.clone(),
             ids=self.policy_set.ids.clone(),
             best_evaluations=self.repeats.reported_evaluations,
         )
@@ -303,7 +303,8 @@ class PolicySearch:
         self._pending_boxed = True
         if max_rows is not None:
             theta = theta[: int(max_rows)]
-        return theta.to(self.dtype)
+        # A copy: rows edited in place must not edit the pending ones that tell checks against.
+        return theta.to(self.dtype, copy=True)
 
     @property
     def asked_owner(self) -> Tensor | None:
@@ -350,9 +351,9 @@ class PolicySearch:
             )
         check_finite(theta, "theta")
         # Rows told as this optimizer asked them lie in its box: one comparison checks both.
-        if not (self._pending_boxed and told_as_asked(self._pending, theta)):
+        if not (self._pending_boxed and told_as_asked(self._pending, theta, self.dtype)):
             check_in_box(self.box, theta)
-            check_asked(self._pending, theta)
+            check_asked(self._pending, theta, self.dtype)
         rewards = check_rewards(rewards, theta.shape[0], "asked θ").to(self.device)
         self.reward_scale.check_range(rewards, first=not self.started)  # before any change
         theta = into_box(self.box, theta.detach().to(device=self.device, dtype=DTYPE))
@@ -587,6 +588,11 @@ class PolicySearch:
                 )
             self._best_theta = best_theta.to(self.device)
             self._best_reward = float(state["best_reward"])
+            if math.isnan(self._best_reward) or self._best_reward == math.inf:
+                raise ValueError(
+                    f"state_dict['best_reward'] must be a return or -inf (none yet), got "
+                    f"{self._best_reward}"
+                )
             pending, owner = state["pending"], state["pending_owner"]
             self._pending = None if pending is None else pending.to(self.device)
             self._pending_owner = None if owner is None else owner.to(self.device)

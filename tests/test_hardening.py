@@ -565,3 +565,181 @@ def test_global_importance_with_only_scouts_among_the_kept_samples_runs_on():
                  explore=0.5, M=1, generator=torch.Generator().manual_seed(1))  # fmt: skip
     run_to(opt, peaks, 300)
     assert torch.isfinite(opt.policy_means).all() and opt.num_policies >= 1
+
+
+# ------------------------------------------------------------------ what a caller holds
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("kind", ["dipole", "power"])
+def test_editing_what_ask_and_result_return_leaves_the_run_be(kind, dtype):
+    """ask's rows, best(), result and policies are the caller's copies: editing them in place
+    changes nothing in the optimizer (a float64 ask once returned its pending rows, so rows
+    scaled in place were told past the checks of the box and of the rows asked)."""
+    opt = (
+        Dipole(torch.zeros(2, dtype=dtype), 1.0, bounds=(-1.0, 1.0))
+        if kind == "dipole"
+        else (Power(torch.zeros(2, dtype=dtype), 1.0, bounds=(-1.0, 1.0)))
+    )
+    for _ in range(3):
+        theta = opt.ask()
+        opt.tell(theta, quadratic(theta.double()))
+    theta = opt.ask()
+    theta.mul_(50.0)
+    with pytest.raises(ValueError, match="outside bounds|not the row asked"):
+        opt.tell(theta, quadratic(theta.double()))
+    means, best = opt.policy_means.clone(), opt.best()[0].clone()
+    result = opt.result
+    result.means.add_(5.0)
+    result.covariances.mul_(2.0)
+    result.best_theta.add_(1.0)
+    opt.best()[0].add_(1e6)
+    opt.policies.means.add_(3.0)
+    assert torch.equal(opt.policy_means, means) and torch.equal(opt.best()[0], best)
+
+
+@pytest.mark.parametrize("kind", ["dipole", "power"])
+def test_a_copy_or_a_pickle_of_an_optimizer_goes_on_as_the_original(kind):
+    import copy
+    import pickle
+
+    opt = build(kind)
+    for _ in range(5):
+        theta = opt.ask()
+        opt.tell(theta, quadratic(theta))
+    twins = copy.deepcopy(opt), pickle.loads(pickle.dumps(opt))
+    for _ in range(5):
+        theta = opt.ask()
+        opt.tell(theta, quadratic(theta))
+        for twin in twins:
+            asked = twin.ask()
+            assert torch.equal(asked, theta)
+            twin.tell(asked, quadratic(asked))
+
+
+def test_rows_told_back_in_another_float_dtype_are_the_rows_asked():
+    """A float32 optimizer's rows told as float64 (or a float64 one's as float32) are the
+    rows asked: compared in the narrower dtype (float64 rows of float32 ones were refused)."""
+    for dtype, told in ((torch.float32, torch.float64), (torch.float64, torch.float32)):
+        opt = Dipole(torch.zeros(2, dtype=dtype), 0.5)
+        theta = opt.ask()
+        opt.tell(theta.to(told), quadratic(theta.double()))
+        theta = opt.ask()
+        with pytest.raises(ValueError, match="theta row 0 is not the row asked"):
+            opt.tell((theta + 1e-3).to(told), quadratic(theta.double()))
+
+
+@pytest.mark.parametrize("std", [1e151, 1e200, 1e-151, 1e-200])
+@pytest.mark.parametrize("cls", [Dipole, Power])
+def test_a_start_whose_variances_leave_float64_is_refused(cls, std):
+    with pytest.raises(ValueError, match="sigma_start's variances must lie between 1e-300"):
+        cls([0.0, 0.0], std)
+    if std in (1e151, 1e-151):  # as a covariance too (1e±400 is no float64: inf or 0)
+        with pytest.raises(ValueError, match="sigma_start's variances must lie between"):
+            cls([0.0, 0.0], torch.diag(torch.tensor([1.0, std**2], dtype=F64)))
+
+
+@pytest.mark.parametrize("std", [1e150, 1e-150])
+def test_a_start_at_the_edge_of_the_range_runs(std):
+    opt = Dipole([0.0, 0.0], std, generator=torch.Generator().manual_seed(0))
+    for _ in range(40):
+        theta = opt.ask()
+        opt.tell(theta, quadratic(theta / std))
+    assert opt.trials > 40 and math.isfinite(opt.best()[1])
+
+
+# ------------------------------------------------------------------ states that do not fit
+def _bad(state, key, value):
+    state = {**state}
+    if isinstance(key, tuple):
+        state[key[0]] = {**state[key[0]], key[1]: value}
+    else:
+        state[key] = value
+    return state
+
+
+@pytest.mark.parametrize(
+    "key, edit, message",
+    [
+        ("rewards", lambda v: v.fill_(math.nan), r"state_dict\['rewards'\] contains"),
+        ("thetas", lambda v: v.fill_(math.inf), r"state_dict\['thetas'\] contains"),
+        ("policy_means", lambda v: v.fill_(math.nan), r"state_dict\['policy_means'\] contains"),
+        ("policy_covariances", lambda v: v.neg_(), "policy_covariances'] is not positive definite"),
+        ("best_reward", lambda v: math.nan, r"state_dict\['best_reward'\] must be a return"),
+        (("dp_state", "labels"), lambda v: v + 100, r"dp_state'\].labels must lie in \[0, "),
+        (("dp_state", "means"), lambda v: v[:, :2], r"dp_state'\].means must have shape \[K, 3\]"),
+        (("dp_state", "covariances"), lambda v: -v, "dp_state'].covariances is not positive"),
+    ],
+)
+def test_a_state_with_values_that_cannot_be_a_runs_is_refused(key, edit, message):
+    opt = build("dipole")
+    for _ in range(8):
+        theta = opt.ask()
+        opt.tell(theta, quadratic(theta))
+    state = opt.state_dict()
+    before = {k: v.clone() if isinstance(v, Tensor) else v for k, v in state.items()}
+    if isinstance(key, tuple):
+        value = edit(state[key[0]][key[1]].clone())
+    else:
+        value = state[key]
+        value = edit(value.clone() if isinstance(value, Tensor) else value)
+    fresh = build("dipole")
+    fresh_state = fresh.state_dict()
+    with pytest.raises(ValueError, match=message):
+        fresh.load_state_dict(_bad(state, key, value))
+    for k, v in fresh.state_dict().items():  # left as it was
+        if isinstance(v, Tensor):
+            assert torch.equal(v, fresh_state[k]), k
+    assert state.keys() == before.keys()
+
+
+def test_the_dp_sampler_refuses_what_would_corrupt_a_chain():
+    from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
+
+    prior = NormalInverseWishartPrior.from_exploration(torch.zeros(2, dtype=F64), torch.eye(2))
+    with pytest.raises(ValueError, match="alpha must be a positive finite number"):
+        DPSampler(prior, alpha=math.inf)
+    with pytest.raises(ValueError, match="df must be a real number, got '5'"):
+        NormalInverseWishartPrior(
+            prior.mean_loc, prior.mean_covariance, "5", prior.scale, prior.regularization
+        )
+    with pytest.raises(ValueError, match="df must be finite"):
+        NormalInverseWishartPrior.from_exploration(
+            torch.zeros(2, dtype=F64), torch.eye(2), df=math.inf
+        )
+    with pytest.raises(ValueError, match="regularization must be symmetric positive semi"):
+        NormalInverseWishartPrior.from_exploration(
+            torch.zeros(2, dtype=F64), torch.eye(2), regularization=-1.0
+        )
+    y = torch.randn(6, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    sampler = DPSampler(prior, alpha=1.0)
+    state = sampler.fit(y, num_sweeps=2, generator=torch.Generator().manual_seed(1))
+    for changes, message in (
+        ({"labels": state.labels.double()}, "state.labels must be \\[N\\] integers"),
+        ({"labels": state.labels + 5}, "state.labels must lie in"),
+        ({"means": state.means[:, :1]}, "state.means must have shape \\[K, 2\\]"),
+        ({"covariances": state.covariances[:, :1]}, "state.covariances must have shape"),
+    ):
+        bad = DPMixtureState(**{**vars(state), **changes})
+        with pytest.raises(ValueError, match=message):
+            sampler.fit(y, num_sweeps=1, state=bad)
+    with pytest.raises(ValueError, match="labels must have shape \\[N\\] for y \\[N, D\\]"):
+        DPMixtureState.from_labels(y, torch.zeros(0, dtype=torch.long), prior)
+    with pytest.raises(ValueError, match="labels must be an integer tensor"):
+        DPMixtureState.from_labels(y, torch.zeros(6), prior)
+
+
+def test_small_inputs_of_the_wrong_kind_get_a_clear_error_or_are_taken_as_meant():
+    import numpy as np
+
+    from dipole_torch.gaussian_mixture import GaussianMixture
+
+    mixture = GaussianMixture(torch.ones(2), torch.zeros(2, 3), torch.eye(3).expand(2, 3, 3))
+    for dims in ([0.5], [True]):
+        with pytest.raises(ValueError, match="dims must be integers"):
+            mixture.condition(dims, torch.zeros(1))
+    mixture.condition([np.int64(0)], torch.zeros(1))  # numpy integers are integers
+    with pytest.raises(ValueError, match="reward_range must be None, \\(low, high\\)"):
+        Power([0.0, 0.0], 1.0, reward_range=np.array([0.0, 1.0]))
+    with pytest.raises(TypeError, match="options must be a DipoleOptions, got dict"):
+        Dipole([0.0, 0.0], 1.0, options={"M": 3})
+    boxed = Dipole(np.zeros(2), 1.0, bounds=(np.full(2, -1.0), np.ones(2)))
+    assert bool((boxed.ask().abs() <= 1.0).all())
