@@ -9,6 +9,7 @@ from torch import Tensor
 
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.memo import Memo
+from dipole_torch.validation import check_finite
 
 __all__ = ["HOST_ROWS", "NO_POLICY", "PROBE", "REPEAT", "SampleArchive"]
 
@@ -248,6 +249,8 @@ class SampleArchive:
         n = thetas.shape[0]
         _check_tensor(rewards, "rewards", (n,))
         _check_tensor(owner, "owner", (n,), integral=True)
+        check_finite(thetas, "state_dict['thetas']")  # every told θ and return was finite
+        check_finite(rewards, "state_dict['rewards']")
         self.thetas = thetas.to(device=device, dtype=DTYPE)
         self.rewards = rewards.to(device=device, dtype=DTYPE)
         self.owner = owner.to(device=device, dtype=torch.long)

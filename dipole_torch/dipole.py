@@ -101,6 +101,11 @@ class Dipole(PolicySearch):
         bounds: Bounds = None,
         **changes: Any,
     ):
+        if options is not None and not isinstance(options, DipoleOptions):
+            raise TypeError(
+                f"options must be a DipoleOptions, got {type(options).__name__} (single "
+                "options are keyword arguments: Dipole(theta0, sigma_start, M=3))"
+            )
         options = (options or DipoleOptions()).replace(**changes)
         n0 = 2 * options.M if options.n0 is None else options.n0
         super().__init__(
@@ -422,6 +427,8 @@ class Dipole(PolicySearch):
                 )
             self.sampler = self._sampler(prior)
         self.dp_state = None if dp is None else DPMixtureState.from_state_dict(dp)
+        if self.dp_state is not None:
+            self.dp_state.check(self.dim + 1, name="state_dict['dp_state']")
         self.clusterings_skipped = int(state.get("clusterings_skipped", 0))
         self._cover_from_trial()
 

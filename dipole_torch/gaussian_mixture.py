@@ -3,6 +3,7 @@ with Gaussian mixture regression (GMR, Ghahramani & Jordan 1994)."""
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 import torch
@@ -305,7 +306,14 @@ class GaussianMixture(TorchDistribution):
 
     def _index(self, dims: Sequence[int]) -> Tensor:
         d = self.event_shape[0]
-        index = torch.as_tensor(list(dims), dtype=torch.long, device=self.device).reshape(-1)
+        dims = list(dims)
+        for i in dims:  # (a float or a bool would be cast to a dimension silently)
+            integer = isinstance(i, numbers.Integral) or (
+                isinstance(i, Tensor) and not i.is_floating_point() and i.dtype != torch.bool
+            )
+            if not integer or isinstance(i, bool):
+                raise ValueError(f"dims must be integers, got {dims}")
+        index = torch.as_tensor(dims, dtype=torch.long, device=self.device).reshape(-1)
         if index.numel() == 0:
             raise ValueError("dims must name at least one dimension")
         if (index < 0).any() or (index >= d).any() or index.unique().numel() != index.numel():

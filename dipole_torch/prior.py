@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, fields
 
 import torch
@@ -64,6 +66,11 @@ class NormalInverseWishartPrior:
         """Raise ``ValueError`` naming the field that is malformed (shape, finiteness,
         definiteness) or, with ``well_conditioned``, too close to singular for float64."""
         d = self.mean_loc.shape[-1] if self.mean_loc.dim() == 1 else -1
+        number = isinstance(self.df, numbers.Real) and not isinstance(self.df, bool)
+        if not (number or isinstance(self.df, Tensor) and self.df.numel() == 1):
+            raise ValueError(f"df must be a real number, got {self.df!r}")
+        if not math.isfinite(float(self.df)):
+            raise ValueError(f"df must be finite, got {self.df}")
         if not float(self.df) > d + 1:
             raise ValueError(
                 f"df must exceed D + 1 = {d + 1} for a finite prior mean, got {self.df}"
@@ -80,6 +87,12 @@ class NormalInverseWishartPrior:
             check_well_conditioned(self.scale, "scale")
         check_matrix_shape(self.regularization, (d, d), "regularization")
         check_finite(self.regularization, "regularization")
+        # Added to every component's covariance: a negative part would eat into it.
+        reg = self.regularization
+        scale = float(reg.abs().max())
+        symmetric = float((reg - reg.T).abs().max()) <= 1e-12 * scale
+        if not symmetric or float(torch.linalg.eigvalsh(reg).min()) < -1e-12 * scale:
+            raise ValueError("regularization must be symmetric positive semi-definite")
 
     @property
     def dim(self) -> int:

@@ -199,7 +199,7 @@ def check_rewards(rewards, batch: int, each: str = "asked θ", name: str = "rewa
 def check_reward_range(reward_range, name: str = "reward_range") -> None:
     """Raise ``ValueError`` unless ``reward_range`` is ``None``, ``"positive"`` or a pair
     ``(low, high)`` of finite numbers with high > low."""
-    if reward_range is None or reward_range == "positive":
+    if reward_range is None or (isinstance(reward_range, str) and reward_range == "positive"):
         return
     message = f"{name} must be None, (low, high) or 'positive', got {reward_range!r}"
     if isinstance(reward_range, str) or not isinstance(reward_range, Sequence):

@@ -501,6 +501,8 @@ def test_help_lists_every_field_with_its_help():
         ("trials=0", "trials (the trial budget) must be a positive integer"),
         ("device=tpu", "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'tpu'"),
         ("threads=0", "threads must be a positive integer"),
+        ("threads=100000", "threads=100000 is more than 4 times this machine's"),
+        ("seed=18446744073709551615", "seed must be below 18446744073708551613"),
         ("task.n0=0", "task.n0 (initial samples) must be a positive integer"),
         ("trials=5", "trials=5 is below task.n0=10: the first batch (n0 trials) would exceed"),
         ("figure_every=-1", "figure_every must be a non-negative integer"),

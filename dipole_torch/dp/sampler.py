@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -86,8 +88,9 @@ class DPSampler:
     ):
         if not isinstance(prior, NormalInverseWishartPrior):
             raise TypeError(f"prior must be a NormalInverseWishartPrior, got {type(prior)}")
-        if isinstance(alpha, bool) or not (isinstance(alpha, int | float) and alpha > 0):
-            raise ValueError(f"alpha must be a positive number, got {alpha!r}")
+        number = isinstance(alpha, int | float) and not isinstance(alpha, bool)
+        if not (number and 0 < alpha < math.inf):
+            raise ValueError(f"alpha must be a positive finite number, got {alpha!r}")
         check_count(m, "m")
         check_count(inner_steps, "inner_steps")
         check_choice(auxiliary, ("fresh", "reuse"), "auxiliary")
@@ -185,10 +188,8 @@ class DPSampler:
         y = y.to(DTYPE)
         if state is None:
             state = self.start(y, init, generator)
-        elif state.labels.shape != (y.shape[0],):
-            raise ValueError(
-                f"state.labels must have shape [{y.shape[0]}], got {list(state.labels.shape)}"
-            )
+        else:
+            state.check(self.prior.dim, y.shape[0])
         check_count(settle, "settle", optional=True)
         chain = self.to_chain(state)
         partition = None if settle is None else _partition(state.labels)

@@ -19,6 +19,7 @@ from dipole_torch.dp.conditionals import (
 from dipole_torch.gaussian import DTYPE, LOG_2PI, gaussian_log_prob
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.sampling import draw_categorical_numpy, uniforms
+from dipole_torch.validation import check_finite, check_positive_definite
 
 if TYPE_CHECKING:  # a Pyro distribution: Pyro is imported when a mixture is built
     from dipole_torch.gaussian_mixture import GaussianMixture
@@ -45,6 +46,36 @@ class DPMixtureState:
     @property
     def num_components(self) -> int:
         return int(self.means.shape[0])
+
+    def check(self, dim: int, num_points: int | None = None, name: str = "state") -> None:
+        """Raise ``ValueError`` naming what does not fit a chain over ``dim``-dimensional
+        points (``num_points`` of them, when given): tensors of the wrong kind or shape,
+        labels outside ``[0, K)`` or a component without a point, means that are not
+        finite, covariances that are not symmetric positive definite."""
+        labels, means, covs = self.labels, self.means, self.covariances
+        for key, value in (("labels", labels), ("means", means), ("covariances", covs)):
+            if not isinstance(value, Tensor):
+                raise ValueError(f"{name}.{key} must be a tensor, got {type(value).__name__}")
+        if labels.dim() != 1 or labels.is_floating_point() or labels.dtype == torch.bool:
+            raise ValueError(
+                f"{name}.labels must be [N] integers, got {labels.dtype} {list(labels.shape)}"
+            )
+        if num_points is not None and labels.shape[0] != num_points:
+            shape = list(labels.shape)
+            raise ValueError(f"{name}.labels must have shape [{num_points}], got {shape}")
+        if means.dim() != 2 or means.shape[1] != dim:
+            raise ValueError(f"{name}.means must have shape [K, {dim}], got {list(means.shape)}")
+        k = means.shape[0]
+        if tuple(covs.shape) != (k, dim, dim):
+            raise ValueError(
+                f"{name}.covariances must have shape [{k}, {dim}, {dim}], got {list(covs.shape)}"
+            )
+        if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= k):
+            raise ValueError(f"{name}.labels must lie in [0, {k}) (the components of means)")
+        if labels.numel() and bool((torch.bincount(labels, minlength=k) == 0).any()):
+            raise ValueError(f"{name}: every component of means must hold a point of labels")
+        check_finite(means, f"{name}.means")
+        check_positive_definite(covs.to(DTYPE), f"{name}.covariances")
 
     @property
     def counts(self) -> Tensor:
@@ -92,6 +123,15 @@ class DPMixtureState:
         """A state with the given partition (any integer numbering) and each component at its
         conditional posterior mean (``posterior_point_estimate``),
         e.g. to warm-start a chain."""
+        n = y.shape[0] if isinstance(y, Tensor) and y.dim() == 2 else None
+        integers = isinstance(labels, Tensor) and not labels.is_floating_point()
+        if not integers or labels.dtype == torch.bool:
+            raise ValueError(f"labels must be an integer tensor, got {labels!r:.60}")
+        if n is None or n < 1 or tuple(labels.shape) != (n,):
+            raise ValueError(
+                f"labels must have shape [N] for y [N, D], N >= 1; got labels "
+                f"{list(labels.shape)} for y {list(getattr(y, 'shape', []))}"
+            )
         y = y.to(DTYPE)
         labels = torch.unique(labels, return_inverse=True)[1].to(y.device)
         k = int(labels.max()) + 1

@@ -26,6 +26,8 @@ from dipole_torch.checkpoint import CheckpointError
 __all__ = ["ConfigValueError", "check_config", "reported"]
 
 EXIT_BAD_CONFIG = 2
+# torch.Generator seeds are below 2**64, and train.py seeds the episodes' with seed + 1000003.
+SEED_LIMIT = 2**64 - 1_000_003
 
 
 class ConfigValueError(ValueError):
@@ -61,6 +63,16 @@ def check_config(cfg: DictConfig) -> None:
         if value < least:
             kind = "a positive integer" if least else "a non-negative integer"
             raise ConfigValueError(key, value, f"{name} must be {kind}, got {value!r}")
+    if cfg.seed >= SEED_LIMIT:
+        raise ConfigValueError("seed", cfg.seed, f"seed must be below {SEED_LIMIT}, got {cfg.seed}")
+    cores = os.cpu_count() or 1
+    if cfg.threads > 4 * cores:  # thousands of threads end the process without a word
+        raise ConfigValueError(
+            "threads",
+            cfg.threads,
+            f"threads={cfg.threads} is more than 4 times this machine's {cores} cores "
+            "(1 is fastest at these sizes)",
+        )
     if cfg.resume is None and cfg.trials < cfg.task.n0:
         raise ConfigValueError(
             "trials",
