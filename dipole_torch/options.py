@@ -7,6 +7,8 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
+import numpy as np
+
 from dipole_torch.reward import RewardRange, check_reward_range
 from dipole_torch.validation import check_choice, check_count, check_flag, check_real
 
@@ -223,6 +225,10 @@ class DipoleOptions:
     auxiliary: str = "auto"
 
     def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):  # numpy numbers (a grid of options) as Python's
+            value = getattr(self, field.name)
+            if isinstance(value, np.integer | np.floating):
+                object.__setattr__(self, field.name, value.item())
         for name, check in _CHECKS.items():
             check(getattr(self, name), _NAMES.get(name, name))
         if self.reward_range is not None and not isinstance(self.reward_range, str | tuple):

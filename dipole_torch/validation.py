@@ -89,7 +89,9 @@ def check_count(value, name: str, minimum: int = 1, optional: bool = False) -> N
     when ``optional``); bools, strings, NaN and inf are refused."""
     if optional and value is None:
         return
-    number = isinstance(value, int | float) and not isinstance(value, bool)
+    number = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool
+    )
     if not (number and math.isfinite(value) and int(value) == value and value >= minimum):
         kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ValueError(f"{name} must be {kind}{' or None' if optional else ''}, got {value!r}")
@@ -100,7 +102,7 @@ def check_real(value, name: str, optional: bool = False) -> None:
     range checks are the caller's."""
     if optional and value is None:
         return
-    if not isinstance(value, int | float) or isinstance(value, bool):
+    if not isinstance(value, int | float | np.integer | np.floating) or isinstance(value, bool):
         raise ValueError(f"{name} must be a real number, got {value!r}")
 
 

@@ -743,3 +743,19 @@ def test_small_inputs_of_the_wrong_kind_get_a_clear_error_or_are_taken_as_meant(
         Dipole([0.0, 0.0], 1.0, options={"M": 3})
     boxed = Dipole(np.zeros(2), 1.0, bounds=(np.full(2, -1.0), np.ones(2)))
     assert bool((boxed.ask().abs() <= 1.0).all())
+
+
+def test_numpy_numbers_are_taken_as_options_and_counts_and_saved_as_python_numbers():
+    import io
+
+    import numpy as np
+
+    opt = Dipole([0.0, 0.0], 1.0, M=np.int64(3), alpha=np.float32(1.0), n0=np.int64(6))
+    assert type(opt.options.M) is int and type(opt.options.alpha) is float
+    theta = opt.ask(max_rows=np.int64(4))
+    assert theta.shape == (4, 2)
+    opt.tell(theta, quadratic(theta))
+    buffer = io.BytesIO()
+    torch.save(opt.state_dict(), buffer)  # loads without numpy's globals (a checkpoint's way)
+    buffer.seek(0)
+    build("dipole").load_state_dict(torch.load(buffer, weights_only=True), strict=False)
