@@ -61,6 +61,47 @@ def test_the_midpoint_alone_misses_it_and_drops_the_worse_policy():
     assert opt.policy_means[:, 0].tolist() == [0.0]
 
 
+def test_a_probe_as_good_as_the_worse_policy_shows_one_hill():
+    # A plateau (clipped or quantised returns): a probe that ties the worse end is no valley,
+    # so the pair is one hill and the worse policy goes.
+    opt = with_two_policies(pair_points=1)
+    opt.vetting._probe_pairs(opt)
+    worse = float(opt.policy_best_rewards.min())
+    opt.vetting._judge_pairs(
+        opt, torch.full((opt.vetting.pair_probes.shape[0],), worse, dtype=DTYPE)
+    )
+    assert opt.policy_means[:, 0].tolist() == [0.0]
+
+
+def test_a_candidate_whose_probe_ties_its_threshold_is_no_new_optimum():
+    # A valley is a probe worse than both ends: a tie is none, and no duplicate policy starts.
+    opt = with_two_policies(pair_points=1)
+    vetting = opt.vetting
+    vetting.add_candidates(
+        torch.tensor([[6.0]], dtype=DTYPE),
+        torch.tensor([[[1.0]]], dtype=DTYPE),
+        torch.tensor([[6.0]], dtype=DTYPE),
+        torch.tensor([0.5], dtype=DTYPE),
+    )
+    vetting._probe_candidates(opt)
+    vetting.probe_rewards = vetting.candidate_thresholds.clone()
+    vetting.judge(opt)
+    assert opt.num_policies == 2
+    # (Just below the threshold is a valley: the candidate becomes a policy.)
+    opt = with_two_policies(pair_points=1)
+    vetting = opt.vetting
+    vetting.add_candidates(
+        torch.tensor([[6.0]], dtype=DTYPE),
+        torch.tensor([[[1.0]]], dtype=DTYPE),
+        torch.tensor([[6.0]], dtype=DTYPE),
+        torch.tensor([0.5], dtype=DTYPE),
+    )
+    vetting._probe_candidates(opt)
+    vetting.probe_rewards = vetting.candidate_thresholds - 1e-3
+    vetting.judge(opt)
+    assert opt.num_policies == 3
+
+
 def test_policies_beyond_each_others_reach_are_not_probed_as_a_pair():
     # 30 exploration stds apart (std 0.1): a probe above the worse one would only show a
     # ridge joining the two hills, not one hill. Both stay, and no trial goes to the probe.

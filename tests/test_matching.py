@@ -174,3 +174,70 @@ def test_the_cap_holds_for_the_policies_a_clustering_starts():
         assert bool((spread.mean(-1) <= (0.25 * distance).square() * (1 + 1e-9)).all())
         started += int(new.sum())
     assert started > 0
+
+
+def _clustered(**options):
+    """A DIPOLE with one policy at (1, 1) and a clustering of six kept samples into three
+    components: the policy's two samples, two scouts at (−1, −1) and (−1.4, −0.6) (returns
+    −0.3 and −5), and two at (3, −3) and (3.2, −2.8) (returns −20 and −1)."""
+    opt = Dipole(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
+                 generator=torch.Generator().manual_seed(0), **options)  # fmt: skip
+    theta = opt.ask()
+    opt.tell(theta, two_optima(theta))
+    opt.policy_set.reset(torch.tensor([[1.0, 1.0]], dtype=F64), torch.eye(2, dtype=F64)[None] * 0.1)
+    thetas = torch.tensor(
+        [[1.0, 1.0], [1.1, 0.9], [-1.0, -1.0], [-1.4, -0.6], [3.0, -3.0], [3.2, -2.8]], dtype=F64
+    )
+    rewards = torch.tensor([-0.1, -0.2, -0.3, -5.0, -20.0, -1.0], dtype=F64)
+    opt.archive.replace(thetas, rewards, torch.tensor([0, 0, NO_POLICY, NO_POLICY, NO_POLICY,
+                                                       NO_POLICY]))  # fmt: skip
+    rows = torch.arange(6)
+    y = opt._augmented(rows)
+    state = DPMixtureState.from_labels(y, torch.tensor([0, 0, 1, 1, 2, 2]), opt.dp_state.prior)
+    return opt, rows, y, state
+
+
+def test_a_new_policy_starts_at_its_components_eq7_average():
+    opt, rows, y, state = _clustered(hill_valley=False)
+    opt.matching.apply(opt, rows, y, state)
+    w = y[:, -1]  # the reward column: eq. 7's weights
+    for k, members in ((1, slice(2, 4)), (2, slice(4, 6))):
+        average = (w[members, None] * y[members, :2]).sum(0) / w[members].sum()
+        assert torch.allclose(opt.policy_means[k], average, atol=1e-12, rtol=0)
+    assert not torch.allclose(opt.policy_means[1], y[2:4, :2].mean(0))  # not the plain mean
+
+
+def test_with_room_for_one_new_policy_the_component_with_the_best_sample_gets_it():
+    opt, rows, y, state = _clustered(hill_valley=False, max_policies=2)
+    opt.matching.apply(opt, rows, y, state)
+    assert opt.num_policies == 2  # the continued policy and one new one
+    assert float(opt.policy_means[1].sub(torch.tensor([-1.0, -1.0], dtype=F64)).norm()) < 0.5
+
+
+def test_a_candidate_is_judged_by_its_components_best_sample_and_return():
+    opt, rows, y, state = _clustered()
+    opt.matching.apply(opt, rows, y, state)
+    vetting = opt.vetting
+    assert vetting.candidate_samples.tolist() == [[-1.0, -1.0], [3.2, -2.8]]
+    assert vetting.candidate_rewards.tolist() == [-0.3, -1.0]
+
+
+def test_the_papers_clustering_starts_from_the_policies_current_means():
+    """Algorithm 1's warm start (the paper's variant, `matching="replace"`): each chain starts
+    from the components at the policies' PoWER-updated means, not the last clustering's."""
+    opt = Dipole.paper(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
+                       generator=torch.Generator().manual_seed(0))  # fmt: skip
+
+    def reward(theta):
+        theta = theta.double()
+        return torch.exp(-torch.minimum((theta - 1).pow(2).sum(-1), (theta + 1).pow(2).sum(-1)))
+
+    moved = False
+    while opt.trials < 200 and not moved:  # until PoWER has moved the policies since
+        theta = opt.ask()
+        opt.tell(theta, reward(theta))
+        moved = opt.trials > 30 and not torch.equal(opt.policy_means, opt.dp_state.means[:, :2])
+    assert moved
+    rows = opt.matching.clustered_rows(opt)
+    start = opt.matching.warm_start(opt, opt._augmented(rows), rows)
+    assert torch.equal(start.means[:, :2], opt.policy_means)

@@ -156,6 +156,14 @@ def test_each_option_is_checked_once_naming_it(changes, error, message):
         Dipole(torch.zeros(2), 1.0, **changes)
 
 
+def test_both_variants_take_the_papers_constants():
+    # The paper's α = 1, m = 10 auxiliary components and M = 5 importance samples, written
+    # out here (not read from the library's own table), in the default and the paper's set.
+    for options in (DipoleOptions(), DipoleOptions.paper()):
+        assert (options.alpha, options.m, options.M) == (1.0, 10, 5)
+    assert Dipole(torch.zeros(2), 1.0).n0 == 10  # 2M first samples
+
+
 def test_the_papers_set_and_a_checked_copy():
     paper = DipoleOptions.paper()
     assert all(getattr(paper, key) == value for key, value in PAPER.items())
