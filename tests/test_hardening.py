@@ -759,3 +759,14 @@ def test_numpy_numbers_are_taken_as_options_and_counts_and_saved_as_python_numbe
     torch.save(opt.state_dict(), buffer)  # loads without numpy's globals (a checkpoint's way)
     buffer.seek(0)
     build("dipole").load_state_dict(torch.load(buffer, weights_only=True), strict=False)
+
+
+def test_a_dp_state_missing_a_part_is_refused_naming_it():
+    opt = build("dipole")
+    for _ in range(8):
+        theta = opt.ask()
+        opt.tell(theta, quadratic(theta))
+    state = opt.state_dict()
+    state["dp_state"] = {k: v for k, v in state["dp_state"].items() if k != "labels"}
+    with pytest.raises(ValueError, match=r"a DP mixture state's dict lacks \['labels'\]"):
+        build("dipole").load_state_dict(state)

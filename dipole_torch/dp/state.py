@@ -162,6 +162,9 @@ class DPMixtureState:
 
     @classmethod
     def from_state_dict(cls, state: dict) -> DPMixtureState:
+        missing = sorted({"labels", "means", "covariances", "prior"} - set(state))
+        if missing:
+            raise ValueError(f"a DP mixture state's dict lacks {missing}")
         return cls(
             labels=state["labels"],
             means=state["means"],
