@@ -118,8 +118,20 @@ def run(*overrides, env=None):
         (["algo.optimizer.alpha=-1"], "error: algo.optimizer: alpha (DP concentration) must be"),
         (["task.env.width=-1"], "error: task.env: "),
         (["resume=/no/such/checkpoint.pt"], "error: train.py checkpoint '/no/such/checkpoint.pt'"),
-        (["+tirals=100"], "error: unknown key(s) tirals: no setting of that name"),
-        (["+algo.optimizer.alpah=2"], "error: unknown key(s) algo.optimizer.alpah"),
+        (
+            ["+tirals=100"],
+            "error: unknown key(s) tirals: no setting of that name (did you mean trials?",
+        ),
+        (
+            ["+algo.optimizer.alpah=2"],
+            "error: unknown key(s) algo.optimizer.alpah: no setting "
+            "of that name (did you mean algo.optimizer.alpha?",
+        ),
+        (
+            ["+optimizer=power"],
+            "error: unknown key(s) optimizer: no setting of that name (did you mean "
+            "algo.optimizer? task=<name> and algo=<name> choose the task and the optimizer;",
+        ),
     ],
 )
 def test_a_bad_value_is_one_line_naming_it_and_exit_status_2(overrides, line, tmp_path):

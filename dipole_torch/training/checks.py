@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import difflib
 import logging
 import os
 import re
@@ -44,10 +45,14 @@ def check_config(cfg: DictConfig) -> None:
     has (added with ``+``, which Hydra suggests for a misspelled key), naming the key."""
     unknown = _unknown_keys(cfg)
     if unknown:
+        guess = _closest_key(unknown[0], cfg)
+        hint = f"did you mean {guess}?" if guess else "a misspelling?"
+        if guess and guess.split(".")[0] in ("task", "algo") and guess.count(".") == 1:
+            hint += " task=<name> and algo=<name> choose the task and the optimizer;"
         raise ConfigValueError(
             unknown[0],
             OmegaConf.select(cfg, unknown[0]),
-            f"unknown key(s) {', '.join(unknown)}: no setting of that name (a misspelling? "
+            f"unknown key(s) {', '.join(unknown)}: no setting of that name ({hint} "
             "python train.py --help lists every key)",
         )
     counts = (
@@ -100,6 +105,29 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigValueError(
             "resume", cfg.resume, f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}"
         )
+
+
+def _closest_key(key: str, cfg: DictConfig) -> str | None:
+    """The known dotted key nearest ``key``: one that ends with it (``optimizer``:
+    ``algo.optimizer``), else the closest spelling (``tirals``: ``trials``)."""
+    unknown = set(_unknown_keys(cfg))
+    known = [k for k in _dotted_keys(cfg) if k not in unknown and not k.startswith("hydra")]
+    ending = [k for k in known if k.endswith("." + key)]
+    if ending:
+        return min(ending, key=len)
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.75)
+    return close[0] if close else None
+
+
+def _dotted_keys(node: DictConfig, prefix: str = "") -> list[str]:
+    """Every dotted key under ``node``, its sections included."""
+    keys = []
+    for key in node.keys():
+        keys.append(f"{prefix}{key}")
+        child = node._get_node(key)
+        if isinstance(child, DictConfig) and not child._is_none() and not child._is_missing():
+            keys += _dotted_keys(child, f"{prefix}{key}.")
+    return keys
 
 
 def _unknown_keys(node: DictConfig, prefix: str = "") -> list[str]:
