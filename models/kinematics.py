@@ -38,6 +38,10 @@ holding only what kinematics uses:
   taken as fixed (it moves nothing on the chain); on the chain it is an error.
 * A movable joint without ``<axis>`` turns about (or slides along) x, URDF's default
   (pytorch-kinematics would take z); an axis of zeros is an error.
+* On the chain, a joint's axis and ``<origin xyz=... rpy=...>`` (and a link's ``<origin>``,
+  which pytorch-kinematics applies) must be finite numbers: NaN or inf would make positions
+  NaN, which no later check sees. A ``ValueError`` names the file and the joint or link.
+* A chain without a movable joint (a file without joints too) is a ``ValueError``.
 * A mimic joint on the chain is an error (pytorch-kinematics would move it as a joint of
   its own); off the chain (e.g. a gripper's second finger) it is ignored.
 * An unexpanded xacro file is an error that says to run ``xacro`` first.
@@ -53,7 +57,9 @@ Joint limits (rad, or m for prismatic joints) come from the URDF unless ``joint_
   URDF's defaults would lock the joint at ``[0, 0]`` and the arm would silently lose a
   degree of freedom; a joint meant not to move is written ``fixed``;
 * a revolute or prismatic joint without a ``<limit>`` tag (URDF requires one):
-  ``(-inf, inf)``, as pytorch-kinematics reads it.
+  ``(-inf, inf)``, as pytorch-kinematics reads it;
+* a limit that is not a number (NaN included), a lower limit of +inf or an upper one of
+  -inf, in the URDF or the overrides: a ``ValueError`` naming the joint.
 
 The chain's joints (``ArmKinematics.chain``) carry the limits the arm uses.
 """
@@ -243,15 +249,24 @@ class UrdfTree:
                 stacklevel=3,
             )
         values = []
-        for side in ("lower", "upper"):
+        for side, sign in (("lower", -1), ("upper", 1)):
             text = limit.get(side)
             try:
-                values.append(None if text is None else float(text))
+                value = None if text is None else float(text)
             except ValueError:
+                value = math.nan
+            # NaN would pass every comparison (a limit check, the reach) and reach the rollouts
+            if value is not None and (math.isnan(value) or value == -sign * math.inf):
                 raise ValueError(
-                    f"urdf {self.path}: joint {name!r} has <limit {side}={text!r}>, not a number"
-                ) from None
+                    f"urdf {self.path}: joint {name!r} has <limit {side}={text!r}>, "
+                    + ("not a number" if math.isnan(value) else "which leaves the joint no value")
+                )
+            values.append(value)
         return values[0], values[1]
+
+    def link(self, name: str) -> ElementTree.Element:
+        """The ``<link>`` element named ``name``."""
+        return next(link for link in self._robot.findall("link") if link.get("name") == name)
 
 
 def read_urdf_tree(path: Path) -> UrdfTree:
@@ -270,6 +285,32 @@ def read_urdf_tree(path: Path) -> UrdfTree:
     if robot.tag != "robot":
         raise ValueError(f"urdf {path}: its root element is <{robot.tag}>, not <robot>")
     return UrdfTree(robot, path)
+
+
+def _three_numbers(text: str) -> list[float] | None:
+    """The three numbers of an ``xyz`` / ``rpy`` attribute, or ``None`` if it is not three
+    numbers."""
+    try:
+        values = [float(x) for x in text.split()]
+    except ValueError:
+        return None
+    return values if len(values) == 3 else None
+
+
+def _check_origin(origin: ElementTree.Element, where: str) -> None:
+    """Raise a ``ValueError`` starting with ``where`` unless the ``xyz`` and ``rpy`` of
+    ``origin`` (each 0 0 0 if missing) are three finite numbers: NaN or inf would make every
+    position past it NaN, which no later check sees (comparisons with NaN are False)."""
+    for attribute in ("xyz", "rpy"):
+        text = origin.get(attribute)
+        if text is None:
+            continue
+        values = _three_numbers(text)
+        if values is None or not all(map(math.isfinite, values)):
+            raise ValueError(
+                f"{where} has <origin {attribute}={text!r}>; an origin's {attribute} is three "
+                "finite numbers"
+            )
 
 
 @contextlib.contextmanager
@@ -351,17 +392,20 @@ class ArmKinematics:
                     f"joint {joint!r} between {root!r} and {end_effector!r} (serial chains of "
                     "revolute, continuous, prismatic and fixed joints are supported)"
                 )
+            for origin in element.findall("origin"):
+                _check_origin(origin, f"urdf {self.urdf_path}: joint {joint!r}")
+            child = element.find("child").get("link")
+            for origin in tree.link(child).findall("origin"):  # pytorch-kinematics applies it
+                _check_origin(origin, f"urdf {self.urdf_path}: link {child!r}")
             axis = element.find("axis")
             if element.get("type") != "fixed" and axis is not None:
                 text = axis.get("xyz", "")
-                try:
-                    values = [float(x) for x in text.split()]
-                except ValueError:
-                    values = []
-                if len(values) != 3 or not any(values):  # pytorch-kinematics would give NaN
+                values = _three_numbers(text)
+                # A zero, NaN or infinite axis would give NaN positions (normalised axis).
+                if values is None or not all(map(math.isfinite, values)) or not any(values):
                     raise ValueError(
                         f"urdf {self.urdf_path}: joint {joint!r} has <axis xyz={text!r}>; a "
-                        "movable joint's axis is three numbers, not all zero"
+                        "movable joint's axis is three finite numbers, not all zero"
                     )
             mimic = element.find("mimic")
             if mimic is not None:
@@ -371,6 +415,10 @@ class ArmKinematics:
                     "joints is not supported (it would move as a joint of its own): pick an "
                     f"end effector above it, e.g. {tree.joints[joint].find('parent').get('link')!r}"
                 )
+        if not any(tree.joints[joint].get("type") != "fixed" for joint in on_chain):
+            # Checked before pytorch-kinematics builds the chain: it fails on a file without
+            # joints (UnboundLocalError), and a chain of fixed joints moves nothing.
+            raise ValueError(f"no movable joint between {root!r} and {end_effector!r} in {file}")
         self.base_link = root
         self.end_effector = end_effector
         # Imported here: pytorch-kinematics (with matplotlib and scipy) takes longer to import
@@ -387,12 +435,24 @@ class ArmKinematics:
         self.chain = chain.to(device=self.device, dtype=dtype)
         self.joint_names = list(self.chain.get_joint_parameter_names())
         self.dof = len(self.joint_names)
-        if self.dof == 0:
-            raise ValueError(f"no movable joint between {root!r} and {end_effector!r} in {file}")
         lower, upper = self._urdf_limits(tree, joint_lower is None or joint_upper is None)
         factory = {"device": self.device, "dtype": dtype}
         self.joint_lower = self._limit(joint_lower, lower, "joint_lower", factory)
         self.joint_upper = self._limit(joint_upper, upper, "joint_upper", factory)
+        # NaN would pass every comparison below and reach the rollouts; lower = +inf or
+        # upper = -inf leaves the joint no value.
+        invalid = [
+            f"{name} [{format_value(low)}, {format_value(high)}]"
+            for name, low, high in zip(
+                self.joint_names, self.joint_lower.tolist(), self.joint_upper.tolist(), strict=True
+            )
+            if math.isnan(low) or math.isnan(high) or low == math.inf or high == -math.inf
+        ]
+        if invalid:
+            raise ValueError(
+                f"joint limits: not numbers (NaN) or infinite the wrong way (lower +inf, upper "
+                f"-inf) for joint(s) {', '.join(invalid)} of {file}"
+            )
         crossed = [
             f"{name} [{format_value(low)}, {format_value(high)}]"
             for name, low, high in zip(

@@ -168,6 +168,17 @@ def test_clear_errors_for_links_and_files(urdf_path, tmp_path):
         ViapointTask(**task_arguments(urdf_path, start=[1.2, 0.0, 0.3]))
 
 
+@pytest.mark.parametrize("origin", ['xyz="0 0 nan"', 'xyz="0 0 0.4" rpy="0 inf 0"'])
+def test_a_non_finite_origin_stops_the_task_not_its_rewards(tmp_path, origin):
+    """A NaN or inf origin made every position NaN: the task's reach check passed (NaN
+    comparisons are False) and ``evaluate`` returned NaN rewards. Now the task is not built,
+    and the error names the file and the joint."""
+    path = tmp_path / "nan_arm.urdf"
+    path.write_text(URDF.replace('xyz="0 0 0.4" rpy="0 0 0"', origin))
+    with pytest.raises(ValueError, match=r"urdf .*nan_arm\.urdf: joint 'elbow' has <origin "):
+        ViapointTask(**task_arguments(path))
+
+
 def test_start_posture_from_config(urdf_path):
     task = make_task(urdf_path, start=None, dtype="float64")
     q = [0.0, 0.6, 1.2, 0.3]

@@ -323,3 +323,86 @@ def test_a_movable_joint_needs_a_non_zero_axis(tmp_path, axis):
     path = variant(tmp_path, "xarm6_style.urdf", '<axis xyz="0 0 1"/>', f'<axis xyz="{axis}"/>')
     with pytest.raises(ValueError, match=r"joint 'joint1' has <axis xyz='.*'>; a movable joint"):
         ArmKinematics(path, "link_eef")
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "named"),
+    [
+        (
+            '<axis xyz="0 0 1"/>',
+            '<axis xyz="0 nan 1"/>',
+            r"joint 'joint1' has <axis xyz='0 nan 1'>",
+        ),
+        (
+            '<axis xyz="0 0 1"/>',
+            '<axis xyz="0 inf 1"/>',
+            r"joint 'joint1' has <axis xyz='0 inf 1'>",
+        ),
+        (
+            'xyz="0.0535 -0.2845 0"',
+            'xyz="0.0535 nan 0"',
+            r"joint 'joint3' has <origin xyz='0.0535 nan 0'>; an origin's xyz is three finite",
+        ),
+        (
+            'xyz="0.0535 -0.2845 0" rpy="0 0 0"',
+            'xyz="0.0535 -0.2845 0" rpy="0 inf 0"',
+            r"joint 'joint3' has <origin rpy='0 inf 0'>; an origin's rpy is three finite",
+        ),
+        (
+            '<link name="link_eef"/>',
+            '<link name="link_eef"><origin xyz="0 0 -inf"/></link>',
+            r"link 'link_eef' has <origin xyz='0 0 -inf'>",
+        ),
+    ],
+    ids=["axis-nan", "axis-inf", "origin-xyz-nan", "origin-rpy-inf", "link-origin-inf"],
+)
+def test_non_finite_axes_and_origins_on_the_chain_are_named(tmp_path, old, new, named):
+    """NaN or inf in an axis or an origin made every position NaN, which the task's reach
+    check let through (comparisons with NaN are False) and ``evaluate`` returned; now the
+    file does not load, naming the file and the joint or link."""
+    path = variant(tmp_path, "xarm6_style.urdf", old, new)
+    with pytest.raises(ValueError, match=r"urdf .*xarm6_style\.urdf: " + named):
+        ArmKinematics(path, "link_eef")
+
+
+def test_a_file_without_joints_has_no_movable_joint(tmp_path):
+    """pytorch-kinematics fails on a file without joints (UnboundLocalError); the chain is
+    rejected first, as a chain of fixed joints is."""
+    path = tmp_path / "no_joints.urdf"
+    path.write_text('<robot name="r"><link name="base"/></robot>')
+    with pytest.raises(ValueError, match=r"no movable joint between 'base' and 'base' in no_j"):
+        ArmKinematics(path, "base")
+    fixed = variant(
+        tmp_path,
+        "xarm6_style.urdf",
+        '<link name="link_eef"/>',
+        '<link name="link_eef"/> <link name="camera"/> <joint name="camera_joint" type="fixed">'
+        '<parent link="link_base"/> <child link="camera"/> </joint>',
+    )
+    with pytest.raises(ValueError, match=r"no movable joint between 'link_base' and 'camera'"):
+        ArmKinematics(fixed, "camera")
+
+
+@pytest.mark.parametrize(
+    ("limit", "message"),
+    [
+        ('lower="nan" upper="2.0944"', r"<limit lower='nan'>, not a number"),
+        ('lower="-2.059" upper="NaN"', r"<limit upper='NaN'>, not a number"),
+        ('lower="inf" upper="inf"', r"<limit lower='inf'>, which leaves the joint no value"),
+    ],
+    ids=["lower-nan", "upper-nan", "lower-inf"],
+)
+def test_non_finite_joint_limits_are_named_not_crossed(tmp_path, limit, message):
+    """NaN limits were reported as 'lower exceeds upper' (and lower = upper = +inf loaded)."""
+    path = variant(tmp_path, "xarm6_style.urdf", 'lower="-2.059" upper="2.0944"', limit)
+    with pytest.raises(
+        ValueError, match=r"urdf .*xarm6_style\.urdf: joint 'joint2' has " + message
+    ):
+        ArmKinematics(path, "link_eef")
+
+
+def test_nan_limit_overrides_are_named_not_crossed():
+    """A NaN in joint_lower / joint_upper was reported as 'lower exceeds upper'."""
+    nan = [0.0, math.nan, 0.0, 0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"not numbers \(NaN\) .* joint2 \[nan, 2.094\] of xarm6"):
+        ArmKinematics(URDF_DIR / "xarm6_style.urdf", "link_eef", joint_lower=nan)
