@@ -37,6 +37,13 @@ from torch.distributions import Wishart, constraints
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.prior import NormalInverseWishartPrior
 from dipole_torch.sampling import draw
+from dipole_torch.validation import (
+    check_count,
+    check_finite,
+    check_matrix_shape,
+    check_real,
+    check_real_tensor,
+)
 
 __all__ = [
     "InverseWishart",
@@ -46,6 +53,14 @@ __all__ = [
     "state_from_trace",
     "state_sites",
 ]
+
+
+def _check_alpha(alpha) -> None:
+    """Raise ``ValueError`` unless the DP concentration is a finite number > 0 (α = ∞ gives
+    no valid CRP weights, α ≤ 0 a NaN log joint)."""
+    check_real(alpha, "alpha")
+    if not 0 < alpha < math.inf:
+        raise ValueError(f"alpha must be a positive finite number, got {alpha!r}")
 
 
 class InverseWishart(TorchDistribution):
@@ -154,10 +169,19 @@ def dp_mixture_model(
 
     Args:
         prior: the base distribution H (held fixed).
-        alpha: DP concentration α > 0.
-        num_points: N; taken from ``data`` when that is given.
-        data: ``[N, D]`` observed y (``[B, N, D]`` with ``num_draws``), or ``None``.
-        num_draws: run B independent copies of the model in a plate ``draws`` (dim −2).
+        alpha: DP concentration, a finite α > 0.
+        num_points: N, a positive integer; taken from ``data`` when that is given.
+        data: ``[N, D]`` finite observed y, or ``None``. With ``num_draws`` it must be
+            ``[B, N, D]``, its leading dimension B = ``num_draws`` (one data set per draw;
+            ``data.expand(B, N, D)`` gives every draw the same one).
+        num_draws: run B independent copies of the model in a plate ``draws`` (dim −2);
+            a positive integer or ``None``.
+
+    Raises:
+        ValueError: ``alpha``, ``num_points`` or ``num_draws`` out of range, ``data`` of
+            the wrong shape or holding NaN or inf.
+        TypeError: ``prior`` not a ``NormalInverseWishartPrior``, ``data`` not a
+            floating-point tensor.
 
     Returns:
         labels ``[B, N]``, slot means ``[B, N, D]``, slot covariances ``[B, N, D, D]``
@@ -179,18 +203,35 @@ def dp_mixture_model(
         >>> bool(torch.isclose(log_joint, dp_log_joint(y, state, 1.0)))
         True
     """
-    if not alpha > 0:
-        raise ValueError(f"alpha must be positive, got {alpha}")
+    if not isinstance(prior, NormalInverseWishartPrior):
+        raise TypeError(f"prior must be a NormalInverseWishartPrior, got {type(prior).__name__}")
+    _check_alpha(alpha)
+    check_count(num_draws, "num_draws", optional=True)
+    num_draws = None if num_draws is None else int(num_draws)
     d = prior.dim
     if data is not None:
-        if data.dim() < 2 or data.shape[-1] != d:
-            raise ValueError(f"data must have shape [N, {d}], got {list(data.shape)}")
+        check_real_tensor(data, "data")
+        if num_draws is None:
+            if data.dim() == 3:
+                raise ValueError(
+                    f"data of shape {list(data.shape)} has a leading batch dimension of "
+                    f"{data.shape[0]}: pass num_draws={data.shape[0]} (one draw per data set); "
+                    f"without num_draws data must have shape [N, {d}]"
+                )
+            check_matrix_shape(data, (-1, d), "data")
+        elif data.dim() != 3 or data.shape[0] != num_draws or data.shape[-1] != d:
+            raise ValueError(
+                f"data must have shape [{num_draws}, N, {d}] with num_draws={num_draws} (its "
+                f"leading batch dimension equal to num_draws, one data set per draw; "
+                f"data.expand({num_draws}, N, {d}) gives every draw the same one), got "
+                f"{list(data.shape)}"
+            )
+        check_finite(data, "data")
         num_points = data.shape[-2] if num_points is None else num_points
-        if num_points != data.shape[-2]:
-            raise ValueError(f"num_points={num_points} but data has {data.shape[-2]} rows")
-    if num_points is None or num_points < 1:
-        raise ValueError(f"num_points must be a positive integer, got {num_points}")
-    n = num_points
+    check_count(num_points, "num_points")
+    n = int(num_points)
+    if data is not None and n != data.shape[-2]:
+        raise ValueError(f"num_points={num_points} but data has {data.shape[-2]} rows")
     dtype, device = prior.mean_loc.dtype, prior.mean_loc.device
     draws = pyro.plate("draws", num_draws, dim=-2) if num_draws is not None else nullcontext()
     with draws:
@@ -286,15 +327,25 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
     + Σ_k [log N(μ_k; μ0, Σ0) + log IW(Σ_k; ν0, Ψ0)] + Σ_i log N(y_i; μ_{c_i}, Σ_{c_i} + R).
 
     Args:
-        y: ``[N, D]`` data.
+        y: ``[N, D]`` finite data, one row per label of ``state``.
         state: labels ``[N]`` (any numbering), means ``[K, D]``, covariances ``[K, D, D]``
             (Σ + R), and H.
-        alpha: DP concentration α.
+        alpha: DP concentration, a finite α > 0.
 
     Returns:
         A scalar tensor. −inf where some Σ_k = covariances_k − R is not positive definite.
+
+    Raises:
+        ValueError: ``alpha`` out of range, ``y`` not ``[N, D]`` or holding NaN or inf,
+            ``state`` with empty components.
+        TypeError: ``y`` not a tensor, ``state`` not a ``DPMixtureState``.
     """
+    if not isinstance(state, DPMixtureState):
+        raise TypeError(f"state must be a DPMixtureState, got {type(state).__name__}")
+    _check_alpha(alpha)
     prior = state.prior
+    check_matrix_shape(y, (state.labels.numel(), prior.dim), "y")
+    check_finite(y, "y")
     counts = state.counts.to(prior.mean_loc.dtype)
     if bool((counts == 0).any()):
         raise ValueError("state has empty components; the model has none")

@@ -120,6 +120,126 @@ def test_forward_draws_have_the_crp_and_prior_moments():
     assert state.labels.shape == (5,) and state.means.shape == (state.num_components, 2)
 
 
+def _forward_state(n=6, seed=0):
+    prior = prior_2d()
+    pyro.set_rng_seed(seed)
+    trace = poutine.trace(dp_mixture_model).get_trace(prior, 1.0, n)
+    return trace.nodes["y"]["value"], state_from_trace(trace, prior)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_model_refuses_non_finite_data(bad):
+    # With Pyro's validation off (as in production runs) NaN data gave a NaN log joint.
+    data = torch.randn(5, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    data[2, 1] = bad
+    with pytest.raises(
+        ValueError, match=r"data contains non-finite values \(first at index \(2, 1\)\)"
+    ):
+        dp_mixture_model(prior_2d(), 1.0, data=data)
+    batched = data.expand(3, 5, 2)
+    with pytest.raises(ValueError, match="data contains non-finite"):
+        dp_mixture_model(prior_2d(), 1.0, data=batched, num_draws=3)
+
+
+@pytest.mark.parametrize("num_draws", [None, 1, 3, 5])
+def test_model_requires_batched_data_to_match_num_draws(num_draws):
+    # [B, N, D] data without num_draws (or with num_draws = 1) scored all B data sets under
+    # one label set; with num_draws = 3 it failed only at log_prob_sum.
+    data = torch.randn(4, 5, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"data .*num_draws=\d+"):
+        dp_mixture_model(prior_2d(), 1.0, data=data, num_draws=num_draws)
+
+
+def test_model_takes_batched_data_with_matching_num_draws():
+    prior = prior_2d()
+    data = torch.randn(4, 5, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    pyro.set_rng_seed(0)
+    trace = poutine.trace(dp_mixture_model).get_trace(prior, 1.0, data=data, num_draws=4)
+    labels, _, _, y = trace.nodes["_RETURN"]["value"]
+    assert labels.shape == (4, 5) and y is data
+    assert torch.isfinite(trace.log_prob_sum())
+    # One data set for every draw is said so explicitly, by expanding it.
+    with pytest.raises(ValueError, match=r"data must have shape \[4, N, 2\]"):
+        dp_mixture_model(prior, 1.0, data=data[0], num_draws=4)
+    labels, *_ = dp_mixture_model(prior, 1.0, data=data[0].expand(4, 5, 2), num_draws=4)
+    assert labels.shape == (4, 5)
+    with pytest.raises(ValueError, match=r"data must have shape \[N, 2\]"):
+        dp_mixture_model(prior, 1.0, data=data[0, :, :1])
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({"num_points": 2.5}, ValueError, "num_points must be a positive integer"),
+        ({"num_points": 0}, ValueError, "num_points must be a positive integer"),
+        ({"num_points": True}, ValueError, "num_points must be a positive integer"),
+        ({"num_points": None}, ValueError, "num_points must be a positive integer"),
+        ({"num_points": 3, "num_draws": 0}, ValueError, "num_draws must be a positive integer"),
+        ({"num_points": 3, "num_draws": 2.5}, ValueError, "num_draws must be a positive integer"),
+        ({"num_points": 3, "num_draws": -1}, ValueError, "num_draws must be a positive integer"),
+        ({"num_points": 3, "alpha": math.inf}, ValueError, "alpha must be a positive finite"),
+        ({"num_points": 3, "alpha": math.nan}, ValueError, "alpha must be a positive finite"),
+        ({"num_points": 3, "alpha": 0.0}, ValueError, "alpha must be a positive finite"),
+        ({"num_points": 3, "alpha": "1"}, ValueError, "alpha must be a real number"),
+        ({"num_points": 3, "prior": "H"}, TypeError, "prior must be a NormalInverseWishartPrior"),
+        ({"data": [[0.0, 1.0]]}, TypeError, "data must be a floating-point torch.Tensor"),
+    ],
+    ids=[
+        "num_points-fraction",
+        "num_points-zero",
+        "num_points-bool",
+        "num_points-missing",
+        "num_draws-zero",
+        "num_draws-fraction",
+        "num_draws-negative",
+        "alpha-inf",
+        "alpha-nan",
+        "alpha-zero",
+        "alpha-string",
+        "prior-not-a-prior",
+        "data-a-list",
+    ],
+)
+def test_model_refuses_bad_counts_alpha_and_arguments(kwargs, error, match):
+    kwargs = {"prior": prior_2d(), "alpha": 1.0, **kwargs}
+    with pytest.raises(error, match=match):
+        dp_mixture_model(**kwargs)
+
+
+def test_model_takes_whole_float_counts():
+    labels, means, _, y = dp_mixture_model(prior_2d(), 1.0, 3.0, num_draws=2.0)
+    assert labels.shape == (2, 3) and means.shape == (2, 3, 2) and y.shape == (2, 3, 2)
+
+
+@pytest.mark.parametrize("alpha", [0.0, -1.0, math.inf, math.nan, "1", True, None])
+def test_log_joint_refuses_a_bad_alpha(alpha):
+    # alpha <= 0 gave a NaN log joint.
+    y, state = _forward_state()
+    with pytest.raises(ValueError, match="alpha must be a"):
+        dp_log_joint(y, state, alpha)
+
+
+def test_log_joint_refuses_bad_y_and_state():
+    y, state = _forward_state()
+    assert torch.isfinite(dp_log_joint(y, state, 1.0))
+    nan_y = y.clone()
+    nan_y[1, 0] = math.nan
+    with pytest.raises(
+        ValueError, match=r"y contains non-finite values \(first at index \(1, 0\)\)"
+    ):
+        dp_log_joint(nan_y, state, 1.0)  # was a NaN log joint
+    # Fewer rows than labels was a cryptic gather error; more was scored on the first N.
+    for rows in (y[:4], torch.cat([y, y])):
+        with pytest.raises(ValueError, match=r"y must have shape \[6, 2\]"):
+            dp_log_joint(rows, state, 1.0)
+    with pytest.raises(ValueError, match=r"y must have shape \[6, 2\]"):
+        dp_log_joint(y[:, :1], state, 1.0)
+    with pytest.raises(TypeError, match="y must be a torch.Tensor"):
+        dp_log_joint(y.tolist(), state, 1.0)
+    with pytest.raises(TypeError, match="state must be a DPMixtureState"):
+        dp_log_joint(y, (state.labels, state.means, state.covariances), 1.0)
+
+
 # --------------------------------------------------------------------------- Geweke test
 GEWEKE_PRIOR = NormalInverseWishartPrior(
     mean_loc=torch.zeros(1, dtype=F64),
