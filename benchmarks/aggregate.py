@@ -26,7 +26,12 @@ and, per curve, its seeds, run directories, and the mean and std over seeds of `
 each run's final policies taken together where it has them (``final_policy_set``: on the
 viapoint task the routes found, mean and std over runs). A run directory without
 ``results.json`` (still running, failed or killed) is an error unless ``--allow-incomplete``,
-which leaves it out and lists it in the JSON.
+which leaves it out and lists it in the JSON. A run that cannot be read as train.py writes it
+is an error (exit status 2) naming its file and what is wrong, before anything is written:
+a config without task and algo groups, an integer seed and trials; a history with a value
+that is not finite, or that ends before the config's trial budget (train.py writes
+``results.json`` only at a run's end, so this is an error even with ``--allow-incomplete``);
+``policy_set.scalars`` that are not finite numbers by name.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 from lockstep import on_grid, plot_best_and_average
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -90,32 +96,129 @@ def find_run_dirs(root: Path) -> list[Path]:
     return sorted(p.parent.parent for p in root.rglob("config.yaml") if p.parent.name == ".hydra")
 
 
-def load_run(directory: Path) -> Run | None:
-    """The run in ``directory``, or None when it has no ``results.json`` yet."""
-    config_path = directory / ".hydra" / "config.yaml"
-    results_path = directory / "results.json"
+def _is_integer(value) -> bool:
+    """Whether ``value`` is an integer as YAML and JSON write one (a bool is not)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _read_config(config_path: Path) -> dict:
+    """The resolved ``.hydra/config.yaml``, checked to be a train.py config: ``task`` and
+    ``algo`` mappings with a name, an integer ``seed`` and a positive integer ``trials``."""
     try:
         config = OmegaConf.to_container(OmegaConf.load(config_path), resolve=True)
-    except (OSError, OmegaConfBaseException) as error:
-        raise AggregateError(f"cannot read {config_path}: {error}") from None
+    except (OSError, ValueError, yaml.YAMLError, OmegaConfBaseException) as error:
+        message = " ".join(str(error).split())  # (YAML's messages take several lines)
+        raise AggregateError(f"cannot read {config_path}: {message}") from None
     if not isinstance(config, dict) or not {"task", "algo", "seed", "trials"} <= set(config):
         raise AggregateError(
             f"{config_path} is not a train.py config (it needs task, algo, seed and trials)"
         )
-    if not results_path.exists():
-        return None
+    for key in ("task", "algo"):
+        group = config[key]
+        if not isinstance(group, dict) or not isinstance(group.get("name"), str):
+            raise AggregateError(
+                f"{config_path}: {key} must be a config group with a name (as train.py writes "
+                f"it, {key}: {{name: ..., ...}}), got {group!r}"
+            )
+    if not _is_integer(config["seed"]):
+        raise AggregateError(f"{config_path}: seed must be an integer, got {config['seed']!r}")
+    if not _is_integer(config["trials"]) or config["trials"] < 1:
+        raise AggregateError(
+            f"{config_path}: trials must be a positive integer, got {config['trials']!r}"
+        )
+    return config
+
+
+def _read_history(results_path: Path, results: dict) -> np.ndarray:
+    """``results.json``'s learning history as rows [trials, best, mean, best_so_far,
+    num_policies]: equal-length lists of finite numbers, trials increasing."""
     try:
-        results = json.loads(results_path.read_text())
         history = np.array([results["history"][key] for key in HISTORY_KEYS], dtype=float).T
-    except (OSError, ValueError, KeyError, TypeError) as error:
+    except (ValueError, KeyError, TypeError) as error:
         raise AggregateError(
             f"{results_path} is not a train.py results.json with a learning history "
             f"({type(error).__name__}: {error})"
         ) from None
     if history.ndim != 2 or len(history) == 0:
-        raise AggregateError(f"{results_path} has an empty learning history")
+        raise AggregateError(
+            f"{results_path} has an empty learning history (or one whose entries are not "
+            "lists of numbers)"
+        )
+    for k, key in enumerate(HISTORY_KEYS):
+        bad = np.flatnonzero(~np.isfinite(history[:, k]))
+        if len(bad):
+            raise AggregateError(
+                f"{results_path}: history.{key}[{bad[0]}] is {history[bad[0], k]}, not a finite "
+                f"number ({len(bad)} such value(s))"
+            )
     if np.any(np.diff(history[:, 0]) <= 0):
         raise AggregateError(f"{results_path}: history.trials is not increasing")
+    return history
+
+
+def _check_finished(
+    results_path: Path, results: dict, history: np.ndarray, config_path: Path, budget: int
+) -> None:
+    """Refuse a results.json whose run ended before its trial budget: its last values,
+    carried forward to the grid's end, would make wrong means. (train.py writes results.json
+    only when a run has evaluated all its trials, so this is not a run still going, which
+    ``--allow-incomplete`` is for, but two runs' files in one directory, or a run resumed
+    with a smaller budget than its config's.)"""
+    trials, stated = results.get("trials"), results.get("trial_budget")
+    for key, value in (("trials", trials), ("trial_budget", stated)):
+        if value is not None and not _is_integer(value):
+            raise AggregateError(f"{results_path}: {key} must be an integer, got {value!r}")
+    if trials is not None and stated is not None and trials < stated:
+        raise AggregateError(
+            f"{results_path} says trials={trials} of trial_budget={stated}: the run ended "
+            "before its budget; aggregate only finished runs"
+        )
+    end = int(history[-1, 0])
+    if end < budget:
+        raise AggregateError(
+            f"{results_path}: the history ends at {end} trials, before the budget of "
+            f"{config_path} (trials={budget}): its last values would stand for trials it never "
+            f"ran. Finish the run (resume=<dir>/checkpoint.pt trials={budget}) or leave its "
+            "directory out"
+        )
+
+
+def _policy_scalars(results_path: Path, results: dict) -> dict[str, float]:
+    """results.json's ``policy_set.scalars``, finite numbers by name; {} without them."""
+    policy_set = results.get("policy_set", {})
+    if not isinstance(policy_set, dict):
+        raise AggregateError(f"{results_path}: policy_set must be a mapping, got {policy_set!r}")
+    scalars = policy_set.get("scalars", {})
+    if not isinstance(scalars, dict):
+        raise AggregateError(
+            f"{results_path}: policy_set.scalars must be a mapping of names to numbers, "
+            f"got {scalars!r}"
+        )
+    for name, value in scalars.items():
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not np.isfinite(value):
+            raise AggregateError(
+                f"{results_path}: policy_set.scalars.{name} must be a finite number, got {value!r}"
+            )
+    return {name: float(value) for name, value in scalars.items()}
+
+
+def load_run(directory: Path) -> Run | None:
+    """The run in ``directory``, or None when it has no ``results.json`` yet."""
+    config_path = directory / ".hydra" / "config.yaml"
+    results_path = directory / "results.json"
+    config = _read_config(config_path)
+    if not results_path.exists():
+        return None
+    try:
+        results = json.loads(results_path.read_text())
+    except (OSError, ValueError) as error:
+        raise AggregateError(
+            f"{results_path} is not a train.py results.json ({type(error).__name__}: {error})"
+        ) from None
+    if not isinstance(results, dict):
+        raise AggregateError(f"{results_path} is not a train.py results.json (not a mapping)")
+    history = _read_history(results_path, results)
     task, algo = config["task"]["name"], config["algo"]["name"]
     for key, expected in (("task", task), ("algo", algo), ("seed", config["seed"])):
         if results.get(key) != expected:
@@ -123,16 +226,14 @@ def load_run(directory: Path) -> Run | None:
                 f"{results_path} says {key}={results.get(key)!r} but {config_path} says "
                 f"{expected!r}: the directory mixes two runs"
             )
+    _check_finished(results_path, results, history, config_path, config["trials"])
     settings = {
         key: value
         for key, value in flatten(config).items()
         if not any(key == skip or key.startswith(f"{skip}.") for skip in IGNORED)
     }
-    scalars = results.get("policy_set", {}).get("scalars", {})
-    return Run(
-        directory, task, algo, int(config["seed"]), int(config["trials"]), settings, history,
-        {name: float(value) for name, value in scalars.items()},
-    )  # fmt: skip
+    scalars = _policy_scalars(results_path, results)
+    return Run(directory, task, algo, config["seed"], config["trials"], settings, history, scalars)
 
 
 def load_runs(roots: list[Path], allow_incomplete: bool) -> tuple[list[Run], list[Path]]:
@@ -220,7 +321,7 @@ def _final_scalars(curve: list[Run]) -> dict:
 def aggregate(roots: list[Path], out: Path, grid_step: int, allow_incomplete: bool) -> dict:
     runs, incomplete = load_runs(roots, allow_incomplete)
     groups = group_runs(runs)
-    out.mkdir(parents=True, exist_ok=True)
+    figures = []  # plot_best_and_average's arguments per task, drawn once the JSON is made
     summary: dict = {
         "sources": [str(root) for root in roots],
         "incomplete_runs": [str(d) for d in incomplete],
@@ -282,19 +383,32 @@ def aggregate(roots: list[Path], out: Path, grid_step: int, allow_incomplete: bo
             used.add(colors[label])
         runs_text = sorted({len(curve) for curve in curves.values()})
         title = TASK_TITLES.get(task, task)
-        plot_best_and_average(
-            grid,
-            values,
-            colors,
-            out / f"{task}.png",
-            task_title=title,
-            ylabel=f"return (mean ± std over {'/'.join(map(str, runs_text))} runs)",
-            suptitle=f"{title}: {', '.join(curves)}",
+        figures.append(
+            dict(
+                grid=grid,
+                curves=values,
+                colors=colors,
+                path=out / f"{task}.png",
+                task_title=title,
+                ylabel=f"return (mean ± std over {'/'.join(map(str, runs_text))} runs)",
+                suptitle=f"{title}: {', '.join(curves)}",
+            )
         )
         entry["figure"] = str(out / f"{task}.png")
         summary["tasks"][task] = entry
+        try:  # (finite histories, but a mean can overflow)
+            json.dumps(entry, allow_nan=False)
+        except ValueError:
+            raise AggregateError(
+                f"{task}: a mean or std over the runs is not finite: returns too large for a "
+                "float in their results.json"
+            ) from None
+    text = json.dumps(summary, indent=1, allow_nan=False)  # all checked: before any figure
+    out.mkdir(parents=True, exist_ok=True)
+    for figure in figures:
+        plot_best_and_average(**figure)
     path = out / "aggregate.json"
-    path.write_text(json.dumps(summary, indent=1, allow_nan=False))
+    path.write_text(text)
     print(f"wrote {out}/<task>.png for {', '.join(groups)} and {path}")
     return summary
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -245,3 +246,131 @@ def test_aggregate_errors_name_the_problem(tmp_path, capsys):
     (tmp_path / "b" / "seed0" / "results.json").write_text('{"task": "multimodal"}')
     code, err = run_aggregate(capsys, tmp_path / "b", "--out", tmp_path / "o")
     assert code == 2 and "is not a train.py results.json" in err
+
+
+# ---- aggregate.py refuses a bad run before it writes anything -------------------------------
+
+
+def edit_results(directory: Path, **changes) -> None:
+    """Set top-level keys of the run's results.json (``history`` is merged key by key)."""
+    path = directory / "results.json"
+    results = json.loads(path.read_text())
+    results["history"].update(changes.pop("history", {}))
+    results.update(changes)
+    path.write_text(json.dumps(results))  # (json writes NaN and Infinity by default)
+
+
+def edit_config(directory: Path, **changes) -> None:
+    path = directory / ".hydra" / "config.yaml"
+    config = yaml.safe_load(path.read_text())
+    config.update(changes)
+    path.write_text(yaml.safe_dump(config))
+
+
+def refused(capsys, tmp_path, *flags) -> str:
+    """aggregate.py's error on the sweep ``tmp_path/sweep``, checked to be exit status 2
+    with nothing written."""
+    out = tmp_path / "out"
+    code, err = run_aggregate(capsys, tmp_path / "sweep", "--out", out, "--grid-step", 5, *flags)
+    assert code == 2 and err.startswith("aggregate.py: error: "), err
+    assert not out.exists() or not any(out.iterdir()), "wrote output for a refused sweep"
+    return err
+
+
+def two_runs(tmp_path) -> Path:
+    """Seeds 0 and 1 of a finished sweep; returns seed 0's directory, the one to spoil."""
+    fake_run(tmp_path / "sweep" / "seed1", 1)
+    fake_run(tmp_path / "sweep" / "seed0", 0)
+    return tmp_path / "sweep" / "seed0"
+
+
+@pytest.mark.parametrize(
+    "key, index, value",
+    [("best", -1, float("nan")), ("mean", 3, float("inf")), ("best_so_far", 0, -float("inf"))],
+)
+def test_aggregate_refuses_a_history_that_is_not_finite(tmp_path, capsys, key, index, value):
+    """A NaN at a grid point used to write the figures, then fail on the strict JSON; one
+    between grid points went into the figures unseen."""
+    run = two_runs(tmp_path)
+    history = json.loads((run / "results.json").read_text())["history"]
+    history[key][index] = value
+    edit_results(run, history=history)
+    err = refused(capsys, tmp_path)
+    position = index % len(history[key])
+    assert f"{run / 'results.json'}: history.{key}[{position}] is {value}" in err
+
+
+@pytest.mark.parametrize(
+    "policy_set, what",
+    [
+        (None, "policy_set must be a mapping, got None"),
+        ([1, 2], "policy_set must be a mapping, got [1, 2]"),
+        ({"scalars": [3.0]}, "policy_set.scalars must be a mapping of names to numbers"),
+        ({"scalars": {"routes": "three"}}, "policy_set.scalars.routes must be a finite number"),
+        ({"scalars": {"routes": [3.0]}}, "policy_set.scalars.routes must be a finite number"),
+        ({"scalars": {"routes": float("nan")}}, "policy_set.scalars.routes must be a finite"),
+    ],
+)
+def test_aggregate_refuses_a_policy_set_that_is_not_numbers_by_name(
+    tmp_path, capsys, policy_set, what
+):
+    run = two_runs(tmp_path)
+    edit_results(run, policy_set=policy_set)
+    assert f"{run / 'results.json'}: {what}" in refused(capsys, tmp_path)
+
+
+def test_aggregate_refuses_a_config_yaml_that_is_not_yaml(tmp_path, capsys):
+    run = two_runs(tmp_path)
+    (run / ".hydra" / "config.yaml").write_text("task: [multimodal\nseed: 0\n")
+    err = refused(capsys, tmp_path)
+    assert f"cannot read {run / '.hydra' / 'config.yaml'}: while parsing" in err
+    assert len(err.strip().splitlines()) == 1  # (YAML's message on one line)
+
+
+@pytest.mark.parametrize("key", ["task", "algo"])
+def test_aggregate_refuses_a_task_or_algo_that_is_not_a_config_group(tmp_path, capsys, key):
+    run = two_runs(tmp_path)
+    edit_config(run, **{key: "multimodal"})
+    err = refused(capsys, tmp_path)
+    assert f"{run / '.hydra' / 'config.yaml'}: {key} must be a config group with a name" in err
+    assert "got 'multimodal'" in err
+
+
+@pytest.mark.parametrize("seed", ["abc", 1.5, True])
+def test_aggregate_refuses_a_seed_that_is_not_an_integer(tmp_path, capsys, seed):
+    """seed: 1.5 was cut to 1, then reported as seed 1 appearing twice (or, alone, passed)."""
+    run = two_runs(tmp_path)
+    edit_config(run, seed=seed)
+    edit_results(run, seed=seed)
+    err = refused(capsys, tmp_path)
+    assert f"{run / '.hydra' / 'config.yaml'}: seed must be an integer, got {seed!r}" in err
+
+
+@pytest.mark.parametrize("flags", [(), ("--allow-incomplete",)])
+def test_aggregate_refuses_a_history_that_ends_before_the_budget(tmp_path, capsys, flags):
+    """Its last values carried forward to the budget made wrong means. train.py writes
+    results.json only at a run's end, so --allow-incomplete (runs without one) keeps it an
+    error."""
+    run = two_runs(tmp_path)
+    for directory in (run, run.parent / "seed1"):
+        edit_config(directory, trials=100)  # both 100: the grid would reach 100
+    err = refused(capsys, tmp_path, *flags)
+    assert f"{run / 'results.json'}: the history ends at 20 trials" in err
+    assert f"{run / '.hydra' / 'config.yaml'} (trials=100)" in err
+
+    shutil.rmtree(tmp_path / "sweep")
+    run = two_runs(tmp_path)
+    edit_results(run, trials=20, trial_budget=100)
+    err = refused(capsys, tmp_path, *flags)
+    assert f"{run / 'results.json'} says trials=20 of trial_budget=100" in err
+
+
+def test_aggregate_checks_every_number_before_drawing_a_figure(tmp_path, capsys):
+    """Finite returns whose mean overflows a float: refused before any figure is drawn."""
+    run = two_runs(tmp_path)
+    for directory in (run, run.parent / "seed1"):
+        history = json.loads((directory / "results.json").read_text())["history"]
+        edit_results(directory, history={"best": [1.7e308] * len(history["best"])})
+    with np.errstate(over="ignore"):
+        err = refused(capsys, tmp_path)
+    assert "multimodal: a mean or std over the runs is not finite" in err
