@@ -183,7 +183,7 @@ def train(cfg: DictConfig) -> dict:
             "wall_time_s": elapsed + time.perf_counter() - start,
             "best_reward": best_reward,
             "best_theta": best_theta.tolist(),
-            "policies": policy_summary(task, optimizer),
+            "policies": policy_summary(task, optimizer, task_generator),
             **policy_set_summary(task, optimizer),
             **repeat_summary(optimizer),
             **({"block": blocked} if blocked is not None else {}),

@@ -80,4 +80,26 @@ class EpisodicTask(abc.ABC):
             )
         if not torch.isfinite(theta).all():
             raise ValueError("theta contains non-finite values (NaN or inf)")
-        return theta.to(device=self.device, dtype=self.dtype)
+        cast = theta.to(device=self.device, dtype=self.dtype)
+        if not torch.isfinite(cast).all():  # finite, but beyond the task's dtype
+            raise ValueError(
+                f"theta holds values beyond the task's {self.dtype} range (largest "
+                f"|θ| {float(theta.abs().max()):.3g}, {self.dtype}'s largest "
+                f"{torch.finfo(self.dtype).max:.3g})"
+            )
+        return cast
+
+
+def floating_dtype(dtype: torch.dtype | str, half: bool = True) -> torch.dtype:
+    """``dtype`` (a ``torch.dtype`` or its name, ``"float64"``) if it is a floating dtype, and
+    wide enough when ``half`` is false (float16 and bfloat16 refused); else a ``ValueError``
+    naming it (an integer dtype would truncate the starts and the gains)."""
+    resolved = getattr(torch, dtype, None) if isinstance(dtype, str) else dtype
+    if not isinstance(resolved, torch.dtype) or not resolved.is_floating_point:
+        raise ValueError(f"dtype must be a floating torch dtype or its name, got {dtype!r}")
+    if not half and resolved in (torch.float16, torch.bfloat16):
+        raise ValueError(
+            f"dtype {dtype!r} is too narrow for this task (its inverse kinematics and "
+            "factorisations need float32 or float64)"
+        )
+    return resolved

@@ -6,6 +6,7 @@ import functools
 import math
 
 import torch
+from dipole_torch.tasks.base import floating_dtype
 from dipole_torch.tasks.control import (
     ControlTask,
     check_positive_int,
@@ -117,7 +118,7 @@ class CartPoleTask(ControlTask):
       one-off compilation (cached by inductor afterwards). The maths is the same code,
       compiled or not.
     * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
-      given (``"cpu"``, float32).
+      given (``"cpu"``, float32; a floating dtype or its name, ``"float64"``).
 
     ## Deviations from the paper
 
@@ -169,7 +170,7 @@ class CartPoleTask(ControlTask):
         compile: bool = False,
         chunk: int = 25,
         device: str | torch.device = "cpu",
-        dtype: torch.dtype = torch.float32,
+        dtype: torch.dtype | str = torch.float32,
     ) -> None:
         check_positive_int(steps=steps, chunk=chunk)
         if not (math.isfinite(force_limit) and force_limit > 0):
@@ -187,10 +188,10 @@ class CartPoleTask(ControlTask):
         self.chunk = chunk
         self.device = torch.device(device)
         self.engine = choose_engine(engine, self.device, self.compile)
-        self.dtype = dtype
+        self.dtype = floating_dtype(dtype)
         self.reward_range = (-float(steps), float(steps))
         self.theta0, self.sigma_start = start_distribution(
-            theta0, exploration_std, self.state_dim, self.device, dtype
+            theta0, exploration_std, self.state_dim, self.device, self.dtype
         )
 
     # ------------------------------------------------------------------ dynamics
@@ -284,8 +285,9 @@ class CartPoleTask(ControlTask):
             x, x_dot, angle, angle_dot = state.T.contiguous().clone().unbind(0)
             gains = theta.T.contiguous().unbind(0)
             alive = ~self.failed(state)  # bool [B]: no failure so far
-            upright_steps = torch.zeros_like(x)  # steps within π/60 before any failure
-            alive_steps = torch.zeros_like(x)  # steps before the failing one
+            # Counted in integers: float16 and bfloat16 cannot count to 5000 one by one.
+            upright_steps = torch.zeros_like(x, dtype=torch.int32)  # within π/60, alive
+            alive_steps = torch.zeros_like(x, dtype=torch.int32)  # steps before the failing one
             advance = self._advance_
             if self.compile:
                 advance = functools.partial(compiled(CartPoleTask._advance_), self)
@@ -298,7 +300,7 @@ class CartPoleTask(ControlTask):
                 )
             # +1 per upright step, -1 per step from the failure on, 0 otherwise.
             total = upright_steps - (self.steps - alive_steps)
-        return total.clone()
+        return total.to(self.dtype)
 
     def _advance_(
         self,
@@ -369,7 +371,7 @@ class CartPoleTask(ControlTask):
             x_acc = temp + x_acc_scale * angle_acc * cos_angle
             x, x_dot = x + tau * x_dot, x_dot + tau * x_acc
             angle, angle_dot = angle + tau * angle_dot, angle_dot + tau * angle_acc
-            if abs(x) > x_limit or abs(angle) > angle_limit:
+            if not (abs(x) <= x_limit and abs(angle) <= angle_limit):  # (NaN: failed)
                 # Failed on step t: -1 for it and for every step after it.
                 return float(upright - (self.steps - t))
             if abs(angle) < upright_angle:

@@ -145,4 +145,7 @@ def check_initial_state(
         )
     if not torch.isfinite(initial_state).all():
         raise ValueError("initial_state contains non-finite values (NaN or inf)")
-    return initial_state.to(device=device, dtype=dtype).clone()
+    cast = initial_state.to(device=device, dtype=dtype)
+    if not torch.isfinite(cast).all():
+        raise ValueError(f"initial_state holds values beyond the task's {dtype} range")
+    return cast.clone()

@@ -445,8 +445,11 @@ class MountainCarEnv(_TaskEnv):
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         # Short of the goal as the physics' dtype compares it: a start at the goal has no
         # episode (the task counts it as reached before the first step).
-        goal = torch.tensor(self.task.goal_position, dtype=self.task.dtype).numpy()
-        short_of_goal = float(np.nextafter(goal, -np.inf))
+        goal = torch.tensor(self.task.goal_position, dtype=self.task.dtype)
+        if goal.dtype == torch.bfloat16:  # (numpy has no bfloat16: a step of its epsilon)
+            short_of_goal = float(goal - torch.finfo(goal.dtype).eps * goal.abs())
+        else:
+            short_of_goal = float(np.nextafter(goal.numpy(), -np.inf))
         self.start_space = spaces.Box(
             np.array([self.task.min_position, -self.task.max_speed]),
             np.array([short_of_goal, self.task.max_speed]),

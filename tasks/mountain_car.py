@@ -6,6 +6,7 @@ import functools
 import math
 
 import torch
+from dipole_torch.tasks.base import floating_dtype
 from dipole_torch.tasks.control import (
     ControlTask,
     check_positive_int,
@@ -92,7 +93,7 @@ class MountainCarTask(ControlTask):
       through ``torch.compile`` when ``compile`` is true (as
       ``dipole_torch.tasks.cartpole.CartPoleTask``).
     * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
-      given (``"cpu"``, float32).
+      given (``"cpu"``, float32; a floating dtype or its name, ``"float64"``).
 
     ## Deviations from the paper
 
@@ -143,7 +144,7 @@ class MountainCarTask(ControlTask):
         compile: bool = False,
         chunk: int = 10,
         device: str | torch.device = "cpu",
-        dtype: torch.dtype = torch.float32,
+        dtype: torch.dtype | str = torch.float32,
     ) -> None:
         check_positive_int(steps=steps, chunk=chunk)
         if not (math.isfinite(goal_position) and -0.4 < goal_position < self.max_position):
@@ -163,10 +164,10 @@ class MountainCarTask(ControlTask):
         self.chunk = chunk
         self.device = torch.device(device)
         self.engine = choose_engine(engine, self.device, self.compile)
-        self.dtype = dtype
+        self.dtype = floating_dtype(dtype)
         self.reward_range = (0.0, float(steps))
         self.theta0, self.sigma_start = start_distribution(
-            theta0, exploration_std, 4, self.device, dtype
+            theta0, exploration_std, 4, self.device, self.dtype
         )
 
     # ------------------------------------------------------------------ dynamics
@@ -238,13 +239,22 @@ class MountainCarTask(ControlTask):
         theta = self.check_theta(theta)
         batch_size = theta.shape[0]
         state = self._initial_states(batch_size, generator, initial_state)
+        if initial_state is not None:
+            x, velocity = state.T
+            inside = (x >= self.min_position) & (x <= self.max_position)
+            if not bool((inside & (velocity.abs() <= self.max_speed)).all()):
+                raise ValueError(
+                    f"initial_state must lie between the walls ({self.min_position}, "
+                    f"{self.max_position}) at a speed within ±{self.max_speed}"
+                )
         if self.engine == "python":
             return self._episodes(theta, state)
         with torch.inference_mode(), single_threaded(self.device, batch_size):
             x, velocity = state.T.contiguous().clone().unbind(0)
             gains = theta.T.contiguous().unbind(0)
             done = self.at_goal(state)  # bool [B]: the goal has been reached
-            open_steps = torch.zeros_like(x)  # steps that ended away from the goal
+            # Counted in integers: bfloat16 cannot count past 256 one by one.
+            open_steps = torch.zeros_like(x, dtype=torch.int32)  # steps ended away from the goal
             advance = self._advance_
             if self.compile:
                 advance = functools.partial(compiled(MountainCarTask._advance_), self)
@@ -255,7 +265,7 @@ class MountainCarTask(ControlTask):
                 x, velocity, done, open_steps = advance(n, x, velocity, *gains, done, open_steps)
             # Goal on step t = open_steps + 1: return 101 − t; never: 0.
             total = torch.where(done, self.steps - open_steps, torch.zeros_like(open_steps))
-        return total.clamp(*self.reward_range).clone()
+        return total.to(self.dtype).clamp(*self.reward_range)
 
     def _advance_(
         self,

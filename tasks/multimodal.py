@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Sequence
 
 import torch
@@ -63,19 +65,22 @@ class MultimodalTask(EpisodicTask):
         device: str | torch.device = "cpu",
         optima: Sequence[Sequence[float]] | None = None,
     ):
-        if not 2 <= int(dim) <= 5:
+        for name, value in (("dim", dim), ("num_optima", num_optima)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{name} must be an integer, got {value!r}")
+        if not 2 <= dim <= 5:
             raise ValueError(f"dim must be in [2, 5], got {dim}")
-        if int(num_optima) < 2:
+        if num_optima < 2:
             raise ValueError(f"num_optima must be >= 2, got {num_optima}")
         for name, value in (
             ("radius", radius),
             ("width", width),
             ("exploration_std", exploration_std),
         ):
-            if not value > 0:
-                raise ValueError(f"{name} must be positive, got {value}")
-        if not noise_std >= 0:
-            raise ValueError(f"noise_std must be non-negative, got {noise_std}")
+            if not 0 < value < math.inf:
+                raise ValueError(f"{name} must be positive and finite, got {value}")
+        if not 0 <= noise_std < math.inf:
+            raise ValueError(f"noise_std must be non-negative and finite, got {noise_std}")
         self.device = torch.device(device)
         self.dtype = torch.float32
         angles = 2 * torch.pi * torch.arange(num_optima, dtype=torch.float64) / num_optima
@@ -88,9 +93,12 @@ class MultimodalTask(EpisodicTask):
                 raise ValueError(
                     f"optima must have shape [{num_optima}, {dim}], got {list(centres.shape)}"
                 )
+            if not bool(centres.isfinite().all()):
+                raise ValueError("optima contains non-finite values (NaN or inf)")
         self.optima = centres.to(self.device, self.dtype)
         self.width = float(width)
         self.noise_std = float(noise_std)
+        self.default_seed = 0  # the noise when evaluate is given no generator
         self.theta0 = torch.zeros(dim, device=self.device)
         self.sigma_start = exploration_std**2 * torch.eye(dim, device=self.device)
         self.reward_range = (0.0, 1.0)
@@ -107,11 +115,15 @@ class MultimodalTask(EpisodicTask):
         return torch.exp(-sq / (2 * self.width**2))
 
     def evaluate(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``[B]`` returns of ``theta: [B, D]``."""
+        """``[B]`` returns of ``theta: [B, D]``; with ``noise_std``, the noise drawn from
+        ``generator``, or (``None``) from a fixed seed, as the base class promises: equal
+        ``theta`` give equal returns."""
         reward = self.height(theta)
         if self.noise_std > 0:
-            noise = torch.randn(reward.shape, generator=generator, device=self.device)
-            reward = (reward + self.noise_std * noise).clamp(0.0, 1.0)
+            if generator is None:
+                generator = torch.Generator().manual_seed(self.default_seed)
+            noise = torch.randn(reward.shape, generator=generator, device=generator.device)
+            reward = (reward + self.noise_std * noise.to(self.device)).clamp(0.0, 1.0)
         return reward
 
     def optima_found(self, theta: Tensor) -> list[int]:

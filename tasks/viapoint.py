@@ -16,7 +16,7 @@ from dipole_torch.models.kinematics import ArmKinematics, format_value, resolve_
 from dipole_torch.models.numpy_kinematics import NumpyChain
 from dipole_torch.models.tracking import solve_position_ik, track_path, track_path_numpy
 from dipole_torch.models.wam import END_EFFECTOR_LINK, URDF_PATH, WamKinematics
-from dipole_torch.tasks.base import EpisodicTask
+from dipole_torch.tasks.base import EpisodicTask, floating_dtype
 from torch import Tensor
 
 __all__ = ["ENGINES", "FOUND_RETURN", "KINEMATICS", "Obstacle", "ViapointTask"]
@@ -292,9 +292,7 @@ class ViapointTask(EpisodicTask):
                 "'torch' (or 'auto', which picks it there)"
             )
         self.engine = engine
-        self.dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
-        if not self.dtype.is_floating_point:
-            raise ValueError(f"dtype must be a floating dtype, got {dtype!r}")
+        self.dtype = floating_dtype(dtype, half=False)
         factory = {"device": self.device, "dtype": self.dtype}
         start, target, pass_times, viapoints, initial_joints, joint_lower, joint_upper = map(
             _plain, (start, target, pass_times, viapoints, initial_joints, joint_lower, joint_upper)
@@ -518,6 +516,8 @@ class ViapointTask(EpisodicTask):
             and a description, e.g. ``"a sphere of radius 8 cm on the far viapoint at
             t = 1.2 s (route below / far / above)"``.
         """
+        if theta.dim() == 2 and theta.shape[0] == 0:
+            raise ValueError("theta holds no policy: a blocking obstacle needs a route to block")
         with torch.no_grad():
             path = self.trajectory(theta)
             returns = self.reward(path)
@@ -544,7 +544,7 @@ class ViapointTask(EpisodicTask):
 
     def _desired(self, theta: Tensor) -> Tensor:
         goal = self.target if self.end_at_target else None
-        return self.dynamics.rollout(theta, self.start, goal)
+        return self.dynamics.rollout(_within_reach(theta), self.start, goal)
 
     def trajectory(self, theta: Tensor) -> Tensor:
         """The end-effector path ``[B, T+1, 3]`` (m) the arm actually makes for ``theta``."""
@@ -570,7 +570,8 @@ class ViapointTask(EpisodicTask):
     def _trajectory_numpy(self, theta: Tensor) -> Tensor:
         """``trajectory`` in the numpy engine (float64), returned in the task's dtype."""
         goal = _array(self.target) if self.end_at_target else None
-        desired = self.dynamics.rollout_numpy(_array(theta), _array(self.start), goal)
+        theta = _array(_within_reach(theta))
+        desired = self.dynamics.rollout_numpy(theta, _array(self.start), goal)
         path = track_path_numpy(
             self._numpy_chain,
             _array(self.q_start),
@@ -753,6 +754,17 @@ def _plain(value):
     if isinstance(value, (str, bytes, Tensor)) or not hasattr(value, "__iter__"):
         return value
     return [_plain(item) for item in value]
+
+
+# Attractor coordinates beyond this many metres from the origin are taken at it: far beyond
+# any arm's reach (the arm's path is the same), and the spring of a rollout from 1e36 m
+# overflows float32 (and from 1e300 m float64) into NaN returns.
+ATTRACTOR_LIMIT = 1e3
+
+
+def _within_reach(theta: Tensor) -> Tensor:
+    """``theta: [B, 3K]`` with every attractor coordinate within ±``ATTRACTOR_LIMIT``."""
+    return theta.clamp(-ATTRACTOR_LIMIT, ATTRACTOR_LIMIT)
 
 
 def _array(tensor: Tensor) -> np.ndarray:

@@ -179,3 +179,30 @@ def test_start_distribution_shapes():
     assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
     assert task.reward_range == (-1000.0, 1000.0)
     torch.linalg.cholesky(task.sigma_start)
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_half_precision_rollouts_count_their_steps_exactly(dtype):
+    # The counters are integers: in bfloat16 one by one they stalled at 256 and the returns
+    # left the reward range (6464 of 5000 steps).
+    gains = torch.tensor([[1.0, 2.0, 30.0, 5.0]])
+    task = CartPoleTask(steps=5000, engine="torch", dtype=dtype)
+    value = float(task.evaluate(gains, generator=torch.Generator().manual_seed(0)))
+    low, high = task.reward_range
+    assert low <= value <= high and value == float(torch.tensor(high, dtype=dtype))
+
+
+def test_theta_beyond_the_tasks_dtype_is_refused_not_rolled_out():
+    task = CartPoleTask(engine="python")  # float32
+    with pytest.raises(ValueError, match="beyond the task's torch.float32 range"):
+        task.evaluate(torch.tensor([[1e300, 0.0, 0.0, 0.0]], dtype=torch.float64))
+    huge = torch.tensor([[1e30, 1e30, 1e30, 1e30]])  # finite in float32: the force saturates
+    returns = [CartPoleTask(engine=e).evaluate(huge) for e in ("python", "torch")]
+    assert torch.equal(returns[0], returns[1])
+
+
+def test_a_dtype_is_a_floating_dtype_or_its_name():
+    assert CartPoleTask(dtype="float64").dtype == torch.float64
+    for bad in (torch.int64, "int32", "no_such_dtype"):
+        with pytest.raises(ValueError, match="dtype must be a floating torch dtype or its name"):
+            CartPoleTask(dtype=bad)

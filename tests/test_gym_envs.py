@@ -322,3 +322,12 @@ def test_human_mode_shows_frames_in_a_window(env_id, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(gym.make(env_id).unwrapped)  # every render mode included
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_mountain_car_env_runs_in_half_precision(dtype):
+    env = gym.make("dipole/MountainCar-v0", dtype=dtype)
+    observation, _ = env.reset(seed=0)
+    assert env.observation_space.contains(observation)
+    assert env.unwrapped.start_space.high[0] < env.unwrapped.task.goal_position
+    env.step(1)

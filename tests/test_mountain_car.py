@@ -141,3 +141,23 @@ def test_start_distribution_shapes():
     task = MountainCarTask()
     assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
     assert task.reward_range == (0.0, 100.0)
+
+
+def test_bfloat16_rollouts_count_their_steps_exactly():
+    gains = torch.tensor([[0.0, 0.0, 10.0, 100.0]])
+    wide = MountainCarTask(engine="torch", dtype=torch.float64, steps=500)
+    narrow = MountainCarTask(engine="torch", dtype=torch.bfloat16, steps=500)
+    for x in torch.linspace(-1.2, 0.3, 7):
+        start = torch.tensor([float(x), 0.0])
+        expected = float(wide.evaluate(gains.double(), initial_state=start.double()))
+        got = float(narrow.evaluate(gains.bfloat16(), initial_state=start.bfloat16()))
+        assert got == float(torch.tensor(expected, dtype=torch.bfloat16)) or abs(got - expected) < 8
+
+
+def test_a_start_outside_the_walls_or_too_fast_is_refused():
+    task = MountainCarTask()
+    for start in ([100.0, 0.0], [-0.5, 1.0]):
+        with pytest.raises(ValueError, match="initial_state must lie between the walls"):
+            task.evaluate(task.theta0[None], initial_state=torch.tensor(start))
+    with pytest.raises(ValueError, match="dtype must be a floating torch dtype"):
+        MountainCarTask(dtype=torch.int64)

@@ -70,3 +70,29 @@ def test_the_optima_the_policies_find_together():
     lines = task.describe_policies(policies)
     assert lines[1] == "optimum 0, return 1" and lines[3] == "optimum 3, return 0.9802"
     assert lines[0] == f"optimum 2, return {math.exp(-0.005):.4g}"
+
+
+def test_noisy_returns_without_a_generator_are_the_same_each_time():
+    # The base class's promise: generator=None is a fixed default, so equal θ give equal
+    # returns (the global RNG made a run's results.json differ between identical runs).
+    task = MultimodalTask(noise_std=0.1)
+    theta = torch.zeros(5, 2)
+    assert torch.equal(task.evaluate(theta), task.evaluate(theta))
+    g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    assert torch.equal(task.evaluate(theta, g1), task.evaluate(theta, g2))
+    assert not torch.equal(task.evaluate(theta, g1), task.evaluate(theta, g1))
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"dim": 2.5}, "dim must be an integer"),
+        ({"num_optima": 2.7}, "num_optima must be an integer"),
+        ({"width": math.inf}, "width must be positive and finite"),
+        ({"radius": math.nan}, "radius must be positive and finite"),
+        ({"optima": [[math.nan, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]}, "non-finite"),
+    ],
+)
+def test_bad_task_settings_are_refused_naming_them(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        MultimodalTask(**kwargs)

@@ -277,10 +277,11 @@ def test_on_noisy_returns_the_policies_summary_averages_as_many_rollouts():
         device, dtype = torch.device("cpu"), F64
 
         def __init__(self, reward):
-            self.reward, self.calls = reward, 0
+            self.reward, self.calls, self.generators = reward, 0, set()
 
-        def evaluate(self, theta):
+        def evaluate(self, theta, generator=None):
             self.calls += 1
+            self.generators.add(generator)
             return self.reward(theta)
 
         def describe_policies(self, means):
@@ -292,8 +293,11 @@ def test_on_noisy_returns_the_policies_summary_averages_as_many_rollouts():
             theta = opt.ask()
             opt.tell(theta, reward(theta))
         task = Task(reward)
-        summary = policy_summary(task, opt)
+        episodes = torch.Generator().manual_seed(0)
+        summary = policy_summary(task, opt, episodes)
         assert task.calls == calls and len(summary) == opt.num_policies
+        # One rollout: the task's fixed default episode; several: each its own episode.
+        assert task.generators == ({None} if calls == 1 else {episodes})
 
 
 @pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])

@@ -609,3 +609,24 @@ def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_pa
         in result.stderr
     )
     assert not (run / "checkpoint.pt").exists()  # before the first trial
+
+
+@pytest.mark.parametrize("evaluations", [1, 3])
+def test_two_runs_of_a_noisy_task_write_the_same_results(tmp_path, evaluations):
+    # The policies' returns in results.json were drawn from the global RNG on a noisy task:
+    # two runs of one command differed there, and only there.
+    common = [
+        "task=multimodal",
+        "task.env.noise_std=0.2",
+        "trials=40",
+        "seed=3",
+        "figure_every=0",
+        f"algo.optimizer.best_evaluations={evaluations}",
+    ]
+    results = []
+    for name in ("a", "b"):
+        train(*common, f"hydra.run.dir={tmp_path / name}")
+        run = json.loads((tmp_path / name / "results.json").read_text())
+        run.pop("wall_time_s")
+        results.append(run)
+    assert results[0] == results[1]

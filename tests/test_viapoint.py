@@ -520,3 +520,24 @@ def test_a_policys_path_does_not_depend_on_its_batch(engine):
     whole = task.trajectory(theta)
     assert torch.equal(whole, torch.cat([task.trajectory(theta[:5]), task.trajectory(theta[5:])]))
     assert torch.equal(whole, torch.cat([task.trajectory(row[None]) for row in theta]))
+
+
+@pytest.mark.parametrize("engine", ["torch", "numpy"])
+def test_attractors_far_beyond_reach_give_the_returns_of_the_limit_not_nan(engine):
+    # A float32 rollout from 3e38 m overflowed into NaN; far attractors are taken at
+    # ATTRACTOR_LIMIT (1000 m): the arm's path, and the return, are the same.
+    from dipole_torch.tasks.viapoint import ATTRACTOR_LIMIT
+
+    task = ViapointTask(engine=engine)
+    far = task.evaluate(torch.full((2, 9), 3e38))
+    at_limit = task.evaluate(torch.full((2, 9), ATTRACTOR_LIMIT))
+    assert torch.isfinite(far).all() and torch.equal(far, at_limit)
+
+
+def test_half_precision_and_an_empty_policy_set_are_refused_clearly():
+    for dtype in (torch.float16, torch.bfloat16):
+        with pytest.raises(ValueError, match="too narrow for this task"):
+            ViapointTask(dtype=dtype)
+    task = ViapointTask()
+    with pytest.raises(ValueError, match="theta holds no policy"):
+        task.blocking_obstacle(torch.zeros(0, 9))

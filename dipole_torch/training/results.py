@@ -23,15 +23,19 @@ __all__ = [
 ]
 
 
-def policy_summary(task, optimizer) -> list[dict]:
+def policy_summary(task, optimizer, generator: torch.Generator | None = None) -> list[dict]:
     """One entry per policy: its id, mean, covariance, weight, the return of its mean
     (evaluated without exploration; on returns the repeats found noisy, the mean of
     ``best_evaluations`` rollouts, as ``best()``'s: ``mean_evaluations``) and the task's
-    description of it."""
+    description of it. One rollout runs the task's fixed default episode (``generator=None``:
+    equal means give equal returns); several, their episodes from ``generator``, each its own
+    (the task's default would repeat one episode, and its noise, n times)."""
     means = optimizer.policy_means.to(task.device, task.dtype)
+    rollouts = mean_evaluations(optimizer)
+    episodes = generator if rollouts > 1 else None
     with torch.no_grad():
         returns = torch.stack(
-            [task.evaluate(means) for _ in range(mean_evaluations(optimizer))]
+            [task.evaluate(means, generator=episodes) for _ in range(rollouts)]
         ).mean(0)
     weights = optimizer.policies.weights
     descriptions = task.describe_policies(means)
