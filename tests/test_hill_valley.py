@@ -73,33 +73,24 @@ def test_a_probe_as_good_as_the_worse_policy_shows_one_hill():
     assert opt.policy_means[:, 0].tolist() == [0.0]
 
 
+def judged_candidate_at(probe_below_threshold: float) -> Dipole:
+    """Two policies and a queued candidate at 6 whose probe returns its threshold minus
+    ``probe_below_threshold``, judged."""
+    opt = with_two_policies(pair_points=1)
+    vetting = opt.vetting
+    one = torch.ones(1, 1, dtype=DTYPE)
+    vetting.add_candidates(6 * one, one[None], 6 * one, 0.5 * one[0])
+    vetting._probe_candidates(opt)
+    vetting.probe_rewards = vetting.candidate_thresholds - probe_below_threshold
+    vetting.judge(opt)
+    return opt
+
+
 def test_a_candidate_whose_probe_ties_its_threshold_is_no_new_optimum():
     # A valley is a probe worse than both ends: a tie is none, and no duplicate policy starts.
-    opt = with_two_policies(pair_points=1)
-    vetting = opt.vetting
-    vetting.add_candidates(
-        torch.tensor([[6.0]], dtype=DTYPE),
-        torch.tensor([[[1.0]]], dtype=DTYPE),
-        torch.tensor([[6.0]], dtype=DTYPE),
-        torch.tensor([0.5], dtype=DTYPE),
-    )
-    vetting._probe_candidates(opt)
-    vetting.probe_rewards = vetting.candidate_thresholds.clone()
-    vetting.judge(opt)
-    assert opt.num_policies == 2
+    assert judged_candidate_at(0.0).num_policies == 2
     # (Just below the threshold is a valley: the candidate becomes a policy.)
-    opt = with_two_policies(pair_points=1)
-    vetting = opt.vetting
-    vetting.add_candidates(
-        torch.tensor([[6.0]], dtype=DTYPE),
-        torch.tensor([[[1.0]]], dtype=DTYPE),
-        torch.tensor([[6.0]], dtype=DTYPE),
-        torch.tensor([0.5], dtype=DTYPE),
-    )
-    vetting._probe_candidates(opt)
-    vetting.probe_rewards = vetting.candidate_thresholds - 1e-3
-    vetting.judge(opt)
-    assert opt.num_policies == 3
+    assert judged_candidate_at(1e-3).num_policies == 3
 
 
 def test_policies_beyond_each_others_reach_are_not_probed_as_a_pair():
