@@ -675,7 +675,6 @@ def test_a_state_with_values_that_cannot_be_a_runs_is_refused(key, edit, message
         theta = opt.ask()
         opt.tell(theta, quadratic(theta))
     state = opt.state_dict()
-    before = {k: v.clone() if isinstance(v, Tensor) else v for k, v in state.items()}
     if isinstance(key, tuple):
         value = edit(state[key[0]][key[1]].clone())
     else:
@@ -688,7 +687,6 @@ def test_a_state_with_values_that_cannot_be_a_runs_is_refused(key, edit, message
     for k, v in fresh.state_dict().items():  # left as it was
         if isinstance(v, Tensor):
             assert torch.equal(v, fresh_state[k]), k
-    assert state.keys() == before.keys()
 
 
 def test_the_dp_sampler_refuses_what_would_corrupt_a_chain():
