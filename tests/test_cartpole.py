@@ -206,3 +206,30 @@ def test_a_dtype_is_a_floating_dtype_or_its_name():
     for bad in (torch.int64, "int32", "no_such_dtype"):
         with pytest.raises(ValueError, match="dtype must be a floating torch dtype or its name"):
             CartPoleTask(dtype=bad)
+
+
+def test_the_python_engine_is_the_torch_engines_physics_where_each_term_counts():
+    # Episodes where the force clip and the φ̇² sin φ term change the count: the default CPU
+    # engine (Python floats) must match the torch engine (gymnasium's step) exactly there.
+    cases = [
+        ([0.0, 0.0, 400.0, 0.0], [0.0, 0.0, 0.04, 0.0]),  # the force clip: −949
+        ([0.91, 2.14, 30.9, 7.9], [0.0, 0.0, 0.0, 1.5]),  # 917
+        ([0.0, 0.0, 10.0, 0.5], [0.0, 0.0, -0.15, 1.0]),  # the φ̇² sin φ term: −975
+    ]
+    for gains, start in cases:
+        theta, state = torch.tensor([gains], dtype=torch.float64), torch.tensor(start)
+        returns = [
+            CartPoleTask(engine=e, dtype=torch.float64).evaluate(theta, initial_state=state)
+            for e in ("python", "torch")
+        ]
+        assert torch.equal(returns[0], returns[1]), (gains, start, returns)
+
+
+def test_the_constants_are_gymnasiums_and_starts_lean_both_ways():
+    env = gym.make("CartPole-v1").unwrapped
+    task = CartPoleTask()
+    assert task.angle_threshold == env.theta_threshold_radians  # 12°
+    assert task.x_threshold == env.x_threshold
+    angles = task.sample_initial_state(200, torch.Generator().manual_seed(0))[:, 2]
+    assert bool((angles < 0).any() and (angles > 0).any())
+    assert float(angles.abs().max()) <= task.initial_angle

@@ -497,3 +497,34 @@ def test_a_run_directory_that_cannot_hold_a_lock_file_gives_a_clear_error(tmp_pa
     with pytest.raises(CheckpointError, match=r"cannot lock run directory '.*file'"):
         with run_directory.lock_run_directory(not_a_directory):
             pass
+
+
+def test_a_file_shorter_than_its_trailer_is_refused_as_such(tmp_path):
+    from dipole_torch.checkpoint import MARKER
+
+    short = tmp_path / "short.pt"
+    short.write_bytes(b"PK\x03\x04" + MARKER)  # ends with the marker, too short to hold more
+    with pytest.raises(CheckpointError, match="shorter than its trailer"):
+        load_checkpoint(short)
+
+
+def test_a_legacy_archive_with_two_records_of_one_name_is_refused(tmp_path):
+    import warnings
+
+    def saved(value):
+        buffer = io.BytesIO()
+        torch.save({"a": torch.tensor([value])}, buffer)
+        return zipfile.ZipFile(io.BytesIO(buffer.getvalue()))
+
+    first, second = saved(1.0), saved(2.0)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as archive, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (zipfile warns of the duplicate name)
+        for info in first.infolist():
+            archive.writestr(info.filename, first.read(info.filename))
+        name = next(i.filename for i in second.infolist() if i.filename.endswith("data/0"))
+        archive.writestr(name, second.read(name))
+    twice = tmp_path / "twice.pt"
+    twice.write_bytes(out.getvalue())
+    with pytest.raises(CheckpointError, match="two records of the same name"):
+        load_checkpoint(twice)

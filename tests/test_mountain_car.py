@@ -161,3 +161,14 @@ def test_a_start_outside_the_walls_or_too_fast_is_refused():
             task.evaluate(task.theta0[None], initial_state=torch.tensor(start))
     with pytest.raises(ValueError, match="dtype must be a floating torch dtype"):
         MountainCarTask(dtype=torch.int64)
+
+
+def test_the_speed_limit_is_the_papers():
+    task = MountainCarTask()
+    assert task.max_speed == 0.07 and task.force == 4.0
+    x, velocity = (
+        torch.tensor([-0.5], dtype=torch.float64),
+        torch.tensor([0.5], dtype=torch.float64),
+    )
+    task._step_(x, velocity, torch.tensor([4.0], dtype=torch.float64))
+    assert float(velocity) == 0.07

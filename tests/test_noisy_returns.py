@@ -379,3 +379,39 @@ def test_the_best_averaged_sample_is_checkpointed_and_forgotten_when_the_world_c
     opt.reevaluate(reward(means))
     assert opt.repeats.best is None
     assert torch.equal(opt.best()[0], means[0])  # the best policy mean, as documented
+
+
+def _archive(rewards):
+    from dipole_torch.archive import SampleArchive
+
+    archive = SampleArchive(1, torch.device("cpu"))
+    n = len(rewards)
+    archive.append(torch.arange(n, dtype=F64)[:, None], torch.tensor(rewards, dtype=F64),
+                   torch.arange(n))  # fmt: skip
+    return archive
+
+
+def test_the_best_averaged_sample_is_the_highest_mean_and_stays_so():
+    from dipole_torch.repeats import RepeatedEvaluations
+
+    repeats, archive = RepeatedEvaluations(evaluations=2), _archive([1.0, 3.0, 2.0])
+    repeats.pending = torch.tensor([0, 1])
+    repeats.tell(archive, torch.tensor([1.0, 3.0], dtype=F64))
+    assert repeats.best[0].tolist() == [1.0] and repeats.best[1] == 3.0  # the higher mean
+    repeats.pending = torch.tensor([2])
+    repeats.tell(archive, torch.tensor([2.0], dtype=F64))
+    assert repeats.best[1] == 3.0  # a lower mean completed later does not replace it
+
+
+def test_repeats_that_differ_once_are_noisy_and_three_equal_ones_deterministic():
+    from dipole_torch.repeats import DETERMINISTIC_REPEATS, RepeatedEvaluations
+
+    repeats, archive = RepeatedEvaluations(evaluations=3), _archive([1.0, 2.0])
+    repeats.pending = torch.tensor([0, 1])
+    repeats.tell(archive, torch.tensor([1.0, 2.5], dtype=F64))  # one the same, one not
+    assert repeats.noisy is True and repeats.identical == 0
+    assert DETERMINISTIC_REPEATS == 3
+    repeats, archive = RepeatedEvaluations(evaluations=5), _archive([1.0, 2.0, 4.0])
+    repeats.pending = torch.tensor([0, 1, 2])
+    repeats.tell(archive, torch.tensor([1.0, 2.0, 4.0], dtype=F64))
+    assert repeats.returns == "deterministic" and repeats.rows(archive, [0, 1, 2], 3) == []

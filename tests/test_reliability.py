@@ -497,6 +497,9 @@ def test_config_differences_lists_dotted_keys():
         ("task.env.new", "<missing>", 1),
         ("task.name", "a", "b"),
     ]
+    # An ignored key covers its own subtree, not keys that merely begin with its name.
+    assert config_differences({"trials": 1, "trialsx": 1}, {"trials": 2, "trialsx": 2},
+                              ignore=("trials",)) == [("trialsx", 1, 2)]  # fmt: skip
 
 
 @pytest.mark.parametrize(

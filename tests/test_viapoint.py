@@ -541,3 +541,14 @@ def test_half_precision_and_an_empty_policy_set_are_refused_clearly():
     task = ViapointTask()
     with pytest.raises(ValueError, match="theta holds no policy"):
         task.blocking_obstacle(torch.zeros(0, 9))
+
+
+def test_the_layout_and_reward_constants_are_the_documented_ones():
+    # Pass times 0.4 / 1.2 / 2.0 s on the 0.02 s grid, eq. 9's α = 2.5, the first pass time's
+    # two alternatives 20 cm apart in z; a pass time may be the motion's last instant.
+    task = ViapointTask()
+    assert task.pass_indices == [20, 60, 100] and task.reward_alpha == 2.5
+    first = task.viapoints[0, :2].double()
+    assert torch.allclose(first, torch.tensor([[0.5, -0.29, -0.1], [0.5, -0.29, 0.1]],
+                                              dtype=torch.float64), atol=1e-7)  # fmt: skip
+    assert ViapointTask(pass_times=(0.4, 1.2, 2.8)).pass_indices[-1] == 140
