@@ -541,3 +541,25 @@ def test_tell_takes_the_first_rows_of_an_ask(cls):
     if cls is Dipole:  # the queued tests are forgotten
         assert opt.vetting.candidate_probes.shape[0] == 0 and opt.vetting.pair_probes.shape[0] == 0
     run(opt, task, opt.trials + 60)
+
+
+def test_ties_keep_the_first_best_and_a_tied_reevaluation_is_no_harm():
+    # best(): of equal returns, the first told stays the best.
+    f64 = torch.float64
+    opt = Power(torch.zeros(2, dtype=f64), 1.0, generator=torch.Generator().manual_seed(0))
+    theta = opt.ask()
+    opt.tell(theta, torch.ones(theta.shape[0], dtype=f64))
+    first = theta[0].clone()
+    theta = opt.ask()
+    opt.tell(theta, torch.ones(theta.shape[0], dtype=f64))
+    assert torch.equal(opt.best()[0], first)
+    # reevaluate(): a policy whose new return ties its worst kept one is not restarted.
+    opt = Power(torch.zeros(2, dtype=f64), 1.0, generator=torch.Generator().manual_seed(0))
+    for _ in range(3):
+        theta = opt.ask()
+        opt.tell(theta, -theta.pow(2).sum(-1))
+    worst = opt.archive.per_policy("amin", opt.num_policies)
+    opt.policy_set.covariances = 0.25 * opt.policy_covariances
+    covariances = opt.policy_covariances.clone()
+    opt.reevaluate(worst.clone())
+    assert torch.equal(opt.policy_covariances, covariances)

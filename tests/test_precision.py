@@ -256,3 +256,24 @@ def test_the_success_rules_path_shrinks_with_the_exploration():
     shrunk = float(opt.relative_std()[0] / std)
     assert shrunk < 0.2
     torch.testing.assert_close(opt.policy_set.paths[0], shrunk * path, rtol=1e-9, atol=0)
+
+
+def test_a_policy_resolved_on_one_axis_or_with_one_sample_can_still_be_refined():
+    from test_optimizer import started_dipole, two_optima
+
+    f64 = torch.float64
+    opt = started_dipole(2, two_optima)
+    waking = opt.retirement.waking
+    thetas = torch.zeros(5, 2, dtype=f64)
+    opt.archive.replace(
+        thetas, torch.linspace(0, 1, 5, dtype=f64), torch.zeros(5, dtype=torch.long)
+    )
+    opt.retirement.returns.low, opt.retirement.returns.high = 0.0, 1.0
+    one_axis = torch.diag(torch.tensor([1e-30, 1e-4], dtype=f64))[None]
+    opt.policy_set.reset(torch.zeros(1, 2, dtype=f64), one_axis)
+    assert waking.refinable(opt).tolist() == [True]  # the other axis has room
+    opt.policy_set.reset(torch.zeros(1, 2, dtype=f64), 1e-4 * torch.eye(2, dtype=f64)[None])
+    opt.archive.replace(
+        thetas[:1], torch.tensor([0.5], dtype=f64), torch.zeros(1, dtype=torch.long)
+    )
+    assert waking.refinable(opt).tolist() == [True]  # one sample: no spread to call flat
