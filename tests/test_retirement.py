@@ -348,3 +348,30 @@ def test_a_broad_optimum_frees_its_trials_sooner_and_is_still_refined():
     # (Seeds 0-2 retired at 308 trials in all against 495.)
     assert sum(at for at, _ in spread) < 0.8 * sum(at for at, _ in std), (spread, std)
     assert all(gap > -1e-9 for _, gap in spread + std), (spread, std)  # (1e-11 and 1e-14)
+
+
+def test_ties_a_plateau_sample_is_no_valley_and_a_tied_active_neighbour_is_the_duplicate():
+    from test_optimizer import started_dipole, two_optima
+
+    from dipole_torch.tell_batch import TellBatch
+
+    f64 = torch.float64
+    # A latest sample that ties every kept return (a plateau) is not in a valley.
+    opt = started_dipole(2, two_optima)
+    k = opt.num_policies
+    opt.archive.replace(torch.zeros(k * 3, 2, dtype=f64), torch.full((k * 3,), 0.5, dtype=f64),
+                        torch.arange(k).repeat(3))  # fmt: skip
+    batch = TellBatch(torch.zeros(k, 2, dtype=f64), torch.full((k,), 0.5, dtype=f64),
+                      torch.arange(k), cut=False)  # fmt: skip
+    opt.retirement.observe(opt, batch)
+    assert not bool(torch.as_tensor(opt.retirement._in_valley).any())
+    # An active policy beside a retired one of equal best return is the one dropped.
+    opt = started_dipole(2, two_optima)
+    means = torch.tensor([[0.0, 0.0], [0.01, 0.0]], dtype=f64)
+    opt.archive.replace(means.clone(), torch.tensor([1.0, 1.0], dtype=f64), torch.arange(2))
+    opt.policy_set.reset(means, torch.eye(2, dtype=f64).expand(2, 2, 2).clone())
+    opt.policy_set.active = torch.tensor([True, False])
+    opt.retirement.retire_std = 0.0  # (merging alone)
+    retired = opt.policy_set.ids.tolist()[1]
+    opt.retirement.retire_and_merge(opt)
+    assert opt.policy_set.ids.tolist() == [retired]
