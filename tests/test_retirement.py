@@ -375,3 +375,24 @@ def test_ties_a_plateau_sample_is_no_valley_and_a_tied_active_neighbour_is_the_d
     retired = opt.policy_set.ids.tolist()[1]
     opt.retirement.retire_and_merge(opt)
     assert opt.policy_set.ids.tolist() == [retired]
+
+
+def test_a_straddler_restart_takes_the_kept_samples_unbiased_spread():
+    from test_optimizer import started_dipole, two_optima
+
+    from dipole_torch.mechanisms.exploration import start_spread
+
+    f64 = torch.float64
+    opt = started_dipole(2, two_optima)
+    # Close enough that the spread stays below Σ_start's (not clamped at 1).
+    thetas = 0.2 * torch.tensor([[1.0, 1.0], [1.01, 1.0], [-1.0, -0.98], [-1.02, -1.0]], dtype=f64)
+    rewards = two_optima(thetas)
+    opt.archive.replace(thetas, rewards, torch.zeros(4, dtype=torch.long))
+    opt.policy_set.reset(torch.zeros(1, 2, dtype=f64), 1e-6 * torch.eye(2, dtype=f64)[None])
+    opt.retirement._in_valley = (True,)
+    opt.retirement.restart_straddlers(opt)
+    best = thetas[rewards.argmax()]
+    scatter = (thetas - best).T @ (thetas - best) / 3  # n − 1
+    spread = start_spread(opt, scatter)
+    assert float(spread) < 1.0 and torch.equal(opt.policy_means[0], best)
+    assert torch.allclose(opt.policy_covariances[0], spread * opt.sigma_start, rtol=1e-12, atol=0)
