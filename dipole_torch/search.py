@@ -253,6 +253,21 @@ class PolicySearch:
             best_evaluations=self.repeats.reported_evaluations,
         )
 
+    def __getstate__(self) -> dict:
+        """For ``copy.deepcopy`` and ``pickle``: the generator as its device and state (a
+        ``torch.Generator`` pickles only from torch 2.5 on); the copy draws what this would."""
+        state = self.__dict__.copy()
+        generator = state.pop("generator")
+        state["_generator"] = (str(generator.device), generator.get_state())
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        device, generator_state = state.pop("_generator")
+        generator = torch.Generator(device)
+        generator.set_state(generator_state)
+        self.__dict__.update(state)
+        self.generator = generator
+
     # ------------------------------------------------------------------ ask
     @property
     def batch_size(self) -> int:
