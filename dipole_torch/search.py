@@ -254,8 +254,8 @@ class PolicySearch:
         )
 
     def __getstate__(self) -> dict:
-        """For ``copy.deepcopy`` and ``pickle``: the generator as its device and state (a
-        ``torch.Generator`` pickles only from torch 2.5 on); the copy draws what this would."""
+        """For ``copy.deepcopy`` and ``pickle``: the generator as its device and state (torch
+        2.3's ``torch.Generator`` does not pickle); the copy draws what this would."""
         state = self.__dict__.copy()
         generator = state.pop("generator")
         state["_generator"] = (str(generator.device), generator.get_state())
