@@ -41,7 +41,7 @@ from dipole_torch.validation import (
     check_count,
     check_finite,
     check_matrix_shape,
-    check_real,
+    check_positive_finite,
     check_real_tensor,
 )
 
@@ -53,14 +53,6 @@ __all__ = [
     "state_from_trace",
     "state_sites",
 ]
-
-
-def _check_alpha(alpha) -> None:
-    """Raise ``ValueError`` unless the DP concentration is a finite number > 0 (α = ∞ gives
-    no valid CRP weights, α ≤ 0 a NaN log joint)."""
-    check_real(alpha, "alpha")
-    if not 0 < alpha < math.inf:
-        raise ValueError(f"alpha must be a positive finite number, got {alpha!r}")
 
 
 class InverseWishart(TorchDistribution):
@@ -205,7 +197,7 @@ def dp_mixture_model(
     """
     if not isinstance(prior, NormalInverseWishartPrior):
         raise TypeError(f"prior must be a NormalInverseWishartPrior, got {type(prior).__name__}")
-    _check_alpha(alpha)
+    check_positive_finite(alpha, "alpha")
     check_count(num_draws, "num_draws", optional=True)
     num_draws = None if num_draws is None else int(num_draws)
     d = prior.dim
@@ -342,7 +334,7 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
     """
     if not isinstance(state, DPMixtureState):
         raise TypeError(f"state must be a DPMixtureState, got {type(state).__name__}")
-    _check_alpha(alpha)
+    check_positive_finite(alpha, "alpha")
     prior = state.prior
     check_matrix_shape(y, (state.labels.numel(), prior.dim), "y")
     check_finite(y, "y")

@@ -106,6 +106,14 @@ def check_real(value, name: str, optional: bool = False) -> None:
         raise ValueError(f"{name} must be a real number, got {value!r}")
 
 
+def check_positive_finite(value, name: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is a real number (``check_real``) in (0, ∞),
+    e.g. a DP concentration α: α = ∞ gives no valid CRP weights, α ≤ 0 a NaN log joint."""
+    check_real(value, name)
+    if not 0 < value < math.inf:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
 def check_generator(generator, name: str = "generator") -> None:
     """Raise ``TypeError`` unless ``generator`` is ``None`` or a ``torch.Generator`` (on any
     device: the library draws its seeds on the generator's own device)."""

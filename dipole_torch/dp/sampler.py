@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
@@ -12,7 +10,13 @@ from dipole_torch.dp.slice import SliceChain, slice_sweep
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.prior import NormalInverseWishartPrior
-from dipole_torch.validation import check_choice, check_count, check_finite, check_matrix_shape
+from dipole_torch.validation import (
+    check_choice,
+    check_count,
+    check_finite,
+    check_matrix_shape,
+    check_positive_finite,
+)
 
 __all__ = ["Chain", "DPNumericalError", "DPSampler"]
 
@@ -88,9 +92,7 @@ class DPSampler:
     ):
         if not isinstance(prior, NormalInverseWishartPrior):
             raise TypeError(f"prior must be a NormalInverseWishartPrior, got {type(prior)}")
-        number = isinstance(alpha, int | float) and not isinstance(alpha, bool)
-        if not (number and 0 < alpha < math.inf):
-            raise ValueError(f"alpha must be a positive finite number, got {alpha!r}")
+        check_positive_finite(alpha, "alpha")
         check_count(m, "m")
         check_count(inner_steps, "inner_steps")
         check_choice(auxiliary, ("fresh", "reuse"), "auxiliary")
