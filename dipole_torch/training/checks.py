@@ -45,7 +45,7 @@ def check_config(cfg: DictConfig) -> None:
     has (added with ``+``, which Hydra suggests for a misspelled key), naming the key."""
     unknown = _unknown_keys(cfg)
     if unknown:
-        guess = _closest_key(unknown[0], cfg)
+        guess = _closest_key(unknown[0], cfg, unknown)
         hint = f"did you mean {guess}?" if guess else "a misspelling?"
         if guess and guess.split(".")[0] in ("task", "algo") and guess.count(".") == 1:
             hint += " task=<name> and algo=<name> choose the task and the optimizer;"
@@ -107,10 +107,10 @@ def check_config(cfg: DictConfig) -> None:
         )
 
 
-def _closest_key(key: str, cfg: DictConfig) -> str | None:
-    """The known dotted key nearest ``key``: one that ends with it (``optimizer``:
-    ``algo.optimizer``), else the closest spelling (``tirals``: ``trials``)."""
-    unknown = set(_unknown_keys(cfg))
+def _closest_key(key: str, cfg: DictConfig, unknown: list[str]) -> str | None:
+    """The known dotted key nearest ``key`` (``unknown``: the keys no schema has): one that
+    ends with it (``optimizer``: ``algo.optimizer``), else the closest spelling (``tirals``:
+    ``trials``)."""
     known = [k for k in _dotted_keys(cfg) if k not in unknown and not k.startswith("hydra")]
     ending = [k for k in known if k.endswith("." + key)]
     if ending:
