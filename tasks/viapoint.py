@@ -757,8 +757,8 @@ def _plain(value):
 
 
 # Attractor coordinates beyond this many metres from the origin are taken at it: far beyond
-# any arm's reach (the arm's path is the same), and the spring of a rollout from 1e36 m
-# overflows float32 (and from 1e300 m float64) into NaN returns.
+# any arm's reach, and the spring of a rollout from 1e36 m overflows float32 (and from
+# 1e300 m float64) into NaN returns.
 ATTRACTOR_LIMIT = 1e3
 
 
