@@ -71,12 +71,7 @@ class GaussianMixture(TorchDistribution):
         check = self._validate_args if validate_args is None else validate_args
         if check:
             _check_parameters(weights, means, covariances)
-        # One dtype for all three, as torch.distributions' broadcast_all gives.
-        dtype = torch.promote_types(
-            torch.promote_types(weights.dtype, means.dtype), covariances.dtype
-        )
-        if not dtype.is_floating_point:
-            dtype = torch.get_default_dtype()
+        dtype = _mixture_dtype(weights, means, covariances)
         # Broadcast the three batch shapes, as torch.distributions does for its parameters.
         k, d = means.shape[-2:]
         batch = broadcast_shape(weights.shape[:-1], means.shape[:-2], covariances.shape[:-3])
@@ -327,10 +322,28 @@ class GaussianMixture(TorchDistribution):
             )
 
 
+def _mixture_dtype(weights: Tensor, means: Tensor, covariances: Tensor) -> torch.dtype:
+    """The mixture's dtype: the three parameters' promotion, as torch.distributions'
+    ``broadcast_all`` gives (integer parameters take torch's default dtype)."""
+    dtype = torch.promote_types(torch.promote_types(weights.dtype, means.dtype), covariances.dtype)
+    if not dtype.is_floating_point:
+        dtype = torch.get_default_dtype()
+    if dtype in (torch.float16, torch.bfloat16):
+        # Refused here, not left to log_prob: torch's Cholesky has no kernel for them.
+        raise TypeError(
+            f"GaussianMixture needs float32 or float64 parameters (log_prob and sample "
+            f"factorise the covariances, and torch's Cholesky has no {dtype} kernel); "
+            f"got {dtype}: cast them with .float()"
+        )
+    return dtype
+
+
 def _check_parameters(weights: Tensor, means: Tensor, covariances: Tensor) -> None:
     for name, tensor in (("weights", weights), ("means", means), ("covariances", covariances)):
         if not isinstance(tensor, Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
+    _mixture_dtype(weights, means, covariances)
+    for name, tensor in (("weights", weights), ("means", means), ("covariances", covariances)):
         if not torch.isfinite(tensor).all():
             raise ValueError(f"{name} contains non-finite values")
     if weights.dim() < 1 or weights.shape[-1] < 1:

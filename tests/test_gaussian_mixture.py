@@ -235,3 +235,19 @@ def test_kl_divergence_is_registered_for_single_components():
     assert torch.allclose(kl_divergence(q, q), torch.zeros((), dtype=q.dtype), atol=1e-12)
     with pytest.raises(NotImplementedError, match="no closed form"):
         kl_divergence(random_mixture(k=2, d=2), q)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("validate", [True, False])
+def test_half_precision_parameters_are_refused_naming_the_dtype(dtype, validate):
+    """torch's Cholesky has no float16/bfloat16 kernel: refused at construction (with or
+    without validation, and by ``to``), not as a NotImplementedError from inside log_prob."""
+    with pytest.raises(TypeError, match=f"float32 or float64.*got {dtype}"):
+        GaussianMixture(
+            torch.ones(2, dtype=dtype),
+            torch.zeros(2, 3, dtype=dtype),
+            torch.eye(3, dtype=dtype).expand(2, 3, 3),
+            validate_args=validate,
+        )
+    with pytest.raises(TypeError, match=f"got {dtype}"):
+        random_mixture(seed=1).to(dtype)
