@@ -120,6 +120,25 @@ def test_the_block_keeps_the_other_good_routes_open(task, routes):
     assert obstacle["centre"] == pytest.approx(task.viapoints[0, 0].tolist())
 
 
+@pytest.mark.parametrize(("other", "differs_at"), [((0, 1, 1), 1), ((0, 0, 0), 2)])
+def test_the_block_sits_at_the_pass_time_where_the_other_good_route_differs(
+    task, routes, other, differs_at
+):
+    """With one other good route, equal to the best one but at one pass time, the sphere goes
+    on the best route's viapoint at that pass time (anywhere else it would block both)."""
+    thetas, route_list = routes
+    pair = thetas[[route_list.index((0, 0, 1)), route_list.index(other)]]
+    returns = task.evaluate(pair)
+    assert float(returns.min()) >= 0.9  # both good: the other route is to be kept open
+    best_route = [(0, 0, 1), other][int(returns.argmax())]
+    obstacle, description = task.blocking_obstacle(pair)
+    expected = task.viapoints[differs_at, best_route[differs_at]].tolist()
+    assert obstacle["centre"] == pytest.approx(expected, abs=1e-6)
+    assert f"t = {task.pass_times[differs_at]:g} s" in description
+    blocked = task.with_obstacles([obstacle]).evaluate(pair)
+    assert float(blocked.min()) < 0.1 and float(blocked.max()) >= 0.9
+
+
 def test_dipole_switches_to_a_stored_route_within_k_trials():
     """The default DIPOLE (seed 3, 3 routes on the open layout, see test_viapoint): after 300
     trials its best route is blocked; re-evaluating its K stored policies (K trials, no
