@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from dipole_torch.memo import Memo
-from dipole_torch.validation import check_finite, check_positive_definite
+from dipole_torch.validation import check_finite, check_positive_semidefinite
 
 __all__ = ["PolicyField", "PolicySet"]
 
@@ -203,8 +203,16 @@ class PolicySet:
             dtype = torch.bool if name == "active" else self._tensors[name].dtype
             loaded[name] = value.to(device=device, dtype=dtype)
         check_finite(loaded["means"], "state_dict['policy_means']")
-        if k:
-            check_positive_definite(loaded["covariances"], "state_dict['policy_covariances']")
+        if k:  # semi-definite: a run may leave a retired policy's exploration rounded to zero
+            covariances = loaded["covariances"]
+            check_positive_semidefinite(covariances, "state_dict['policy_covariances']")
+            singular = torch.linalg.cholesky_ex(covariances)[1] != 0
+            active = (singular & loaded["active"]).nonzero().flatten().tolist()
+            if active:
+                raise ValueError(
+                    f"state_dict['policy_covariances'] is not positive definite for the "
+                    f"active policies {active}: an active policy's exploration is sampled"
+                )
         self._tensors.update(loaded)
         ids = loaded["ids"]
         next_id = int(state.get("next_policy_id", int(ids.max()) + 1 if ids.numel() else 0))

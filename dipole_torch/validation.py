@@ -24,6 +24,26 @@ def check_positive_definite(matrix: Tensor, name: str) -> None:
         raise ValueError(f"{name} is not positive definite (Cholesky failed)")
 
 
+def check_positive_semidefinite(matrix: Tensor, name: str, tolerance: float = 1e-9) -> None:
+    """Raise ``ValueError`` unless ``matrix: [..., D, D]`` is finite, symmetric and positive
+    semi-definite: no eigenvalue below ``-tolerance`` times the matrix's largest variance.
+
+    For covariances a run itself may leave singular: an exploration shrunk to rank one, or
+    to zero, by rounding (the optimizer samples no policy whose covariance does not
+    factorise), which a checkpoint must restore as it was."""
+    if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
+        raise ValueError(f"{name} must be square matrices [..., D, D], got {list(matrix.shape)}")
+    if not torch.isfinite(matrix).all():
+        raise ValueError(f"{name} contains non-finite values")
+    scale = matrix.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1e-300)
+    asym = (matrix - matrix.transpose(-1, -2)).abs() / scale[..., None, None]
+    if (asym > 1e-6).any():
+        raise ValueError(f"{name} is not symmetric")
+    symmetric = (matrix + matrix.transpose(-1, -2)) / 2
+    if (torch.linalg.eigvalsh(symmetric).amin(-1) < -tolerance * scale).any():
+        raise ValueError(f"{name} is not positive semi-definite (a negative eigenvalue)")
+
+
 # The smallest eigenvalue of a correlation matrix that float64 factorisations of matrices
 # drawn around it still survive (a covariance this close to singular, once an inverse-Wishart
 # draw adds its own spread, loses positive definiteness to rounding).

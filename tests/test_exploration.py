@@ -105,3 +105,23 @@ def test_a_policy_that_never_retires_keeps_a_floor_under_its_exploration():
     assert MIN_RELATIVE_STD > 0
     assert float(relative.min()) == pytest.approx(MIN_RELATIVE_STD, rel=1e-6, abs=0.0)
     assert float((opt.policy_means - 0.5).abs().max()) < 1e-6  # it did converge
+
+
+def test_a_new_policy_never_starts_below_the_success_rules_floor():
+    """A component whose samples are equal to rounding has a spread that underflows (5e-324,
+    0): a policy started there explored nothing, and with ``retire_std=0`` the next ask
+    failed in its Cholesky factor. It starts at ``MIN_RELATIVE_STD``² of Σ_start, the floor
+    the success rule keeps, and wider spreads are as before."""
+    from dipole_torch.mechanisms.exploration import MIN_RELATIVE_STD
+
+    sigma_start = torch.diag(torch.tensor([1e6, 4e6], dtype=F64))
+    opt = Dipole(torch.zeros(2, dtype=F64), sigma_start, generator=torch.Generator())
+    tiny = torch.stack([torch.zeros(2, 2, dtype=F64), 5e-324 * torch.eye(2, dtype=F64)])
+    start = opt.exploration.starting_covariance(opt, tiny)
+    assert torch.equal(start, (MIN_RELATIVE_STD**2 * sigma_start).expand(2, 2, 2))
+    assert (torch.linalg.cholesky_ex(start)[1] == 0).all()
+    wide = torch.stack([0.25 * sigma_start, 9.0 * sigma_start])  # capped at Σ_start
+    torch.testing.assert_close(
+        opt.exploration.starting_covariance(opt, wide),
+        torch.stack([0.25 * sigma_start, sigma_start]),
+    )

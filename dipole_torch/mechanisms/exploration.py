@@ -192,8 +192,10 @@ class SuccessRule:
 
         A component of a few points in D dimensions has a badly conditioned posterior
         covariance; the rank-one update needs hundreds of samples to unlearn it, which
-        slowed the policies' convergence."""
-        spread = start_spread(search, covariances).clamp(max=1.0)
+        slowed the policies' convergence. Never below ``MIN_RELATIVE_STD``² of Σ_start, the
+        success rule's own floor: a component of samples equal to rounding has a spread that
+        underflows to zero, and a policy started at zero never explores."""
+        spread = start_spread(search, covariances).clamp(MIN_RELATIVE_STD**2, 1.0)
         return spread[..., None, None] * search.sigma_start
 
 
