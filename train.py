@@ -92,10 +92,12 @@ def train(cfg: DictConfig) -> dict:
             )
         shape = {"dimension": optimizer.dim, "reward_range": reward_range}
         history, elapsed, blocked = [], 0.0, None  # elapsed: wall time of earlier sessions
+        figure_trials = None  # the trial count of the latest policy figure in TensorBoard
         if checkpoint is not None:
             history, elapsed, blocked = resume.restore(
                 checkpoint, cfg.resume, optimizer, task_generator, shape, cfg.trials
             )
+            figure_trials = checkpoint.get("figure_trials")  # (kept: the purge is after it)
             if blocked is not None:  # the checkpoint's world: with the obstacle
                 task = task.with_obstacles([*task.obstacles, blocked["obstacle"]])
             log.info(f"resumed {cfg.resume} at {optimizer.trials} trials (seed {cfg.seed})")
@@ -108,11 +110,11 @@ def train(cfg: DictConfig) -> dict:
 
         def save_checkpoint() -> None:
             wall = elapsed + time.perf_counter() - start
-            checkpointer.save(optimizer, task_generator, history, blocked, wall)
+            checkpointer.save(optimizer, task_generator, history, blocked, wall, figure_trials)
 
         # The ask/tell loop: one iteration a batch.
         progress = console.Progress(cfg.trials, optimizer.trials, enabled=cfg.progress)
-        figure_trials, last_batch_cut = None, False
+        last_batch_cut = False
         # DIPOLE's coverage_from (task=viapoint sets it): said once, when the run reaches it.
         cover_from = getattr(getattr(optimizer, "options", None), "coverage_from", None)
         with StopRequest() as stop, progress.messages():
@@ -159,6 +161,11 @@ def train(cfg: DictConfig) -> dict:
                 if len(history) % cfg.checkpoint_every == 0 and not last_batch_cut:
                     save_checkpoint()
             progress.close()
+            if not stop and figure_trials != optimizer.trials:
+                # The final policies, unless just drawn (by this session or, at the
+                # checkpoint's trials, by the one that wrote it), before the checkpoint says so.
+                writer.policy_set(task, optimizer)
+                figure_trials = optimizer.trials
             if not last_batch_cut:
                 save_checkpoint()
         if stop:
@@ -171,8 +178,6 @@ def train(cfg: DictConfig) -> dict:
             raise SystemExit(128 + stop.signum)
 
         # Results.
-        if figure_trials != optimizer.trials:  # the final policies, unless just drawn
-            writer.policy_set(task, optimizer)
         best_theta, best_reward = optimizer.best()
         results = {
             "task": cfg.task.name,

@@ -441,6 +441,25 @@ def test_resume_refuses_a_budget_below_the_checkpoints_trials(finished_run, tmp_
     assert json.loads((copy / "results.json").read_text())["trials"] == held
 
 
+def test_resuming_a_finished_run_logs_its_final_policies_once(finished_run, tmp_path):
+    # The run ended at its budget with its last batch whole: its final figure and task/optima
+    # are drawn at that step. A resume at that budget runs nothing and must not draw them
+    # again at the same step (TensorBoard showed two points there).
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    copy = tmp_path / "run"
+    shutil.copytree(finished_run, copy)
+    held = load_checkpoint(copy / "checkpoint.pt")["optimizer"]["trials"]
+    assert held == 40  # (a whole last batch: a cut one would be run again, and purged)
+    run_train(f"resume={copy / 'checkpoint.pt'}", f"trials={held}")
+    events = EventAccumulator(str(copy / "tensorboard"))
+    events.Reload()
+    for tag in events.Tags()["scalars"]:
+        steps = [e.step for e in events.Scalars(tag)]
+        assert len(steps) == len(set(steps)), (tag, steps)
+    assert [e.step for e in events.Scalars("task/optima")] == [held]
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [

@@ -325,7 +325,10 @@ class Checkpointer:
         history: list,
         block: dict | None,
         wall_time_s: float,
+        figure_trials: int | None = None,
     ) -> None:
+        """``figure_trials``: the trial count of the run's latest policy figure (a resumed
+        run at that count does not draw it again)."""
         atomic_save(
             {
                 "optimizer": optimizer.state_dict(),
@@ -335,6 +338,7 @@ class Checkpointer:
                 "overrides": self.overrides,
                 "wall_time_s": wall_time_s,
                 "block": block,
+                "figure_trials": figure_trials,
                 **self.shape,
             },
             self.path,
