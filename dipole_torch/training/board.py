@@ -54,8 +54,9 @@ class Board:
     Args:
         directory: the run's ``tensorboard/`` directory.
         cfg: the run's config (logged resolved, as text).
-        purge_step: the first step to keep of an earlier session's events (a resumed run:
-            events a killed session logged after its last checkpoint are hidden).
+        purge_step: the first step of an earlier session's events to hide (a resumed run:
+            the checkpoint's trial count + 1, so that the events a killed session logged
+            after its last checkpoint are hidden).
     """
 
     def __init__(self, directory: Path, cfg: DictConfig, purge_step: int | None = None):
