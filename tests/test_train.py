@@ -261,6 +261,19 @@ def test_multirun_over_seeds(tmp_path):
     assert len(runs) == 2, out.stdout
     seeds = sorted(json.loads(p.read_text())["seed"] for p in runs)
     assert seeds == [0, 1]
+    # The run settings (the budget, progress) do not name a run's directory.
+    assert [p.parent.name for p in runs] == ["multimodal_power_seed0", "multimodal_power_seed1"]
+
+
+def test_a_sweep_over_a_hyperparameter_gives_each_run_its_own_directory(tmp_path):
+    # The runs of one seed that differ in a setting wrote to one <task>_<algo>_seed<seed>/:
+    # the second was refused ("already holds a run's checkpoint.pt") and the sweep failed.
+    train("-m", "algo=power", "algo.optimizer.M=4,5", "trials=20", f"hydra.sweep.dir={tmp_path}")
+    runs = sorted(path.parent.name for path in tmp_path.glob("*/results.json"))
+    assert runs == [
+        "multimodal_power_seed0_algo.optimizer.M=4",
+        "multimodal_power_seed0_algo.optimizer.M=5",
+    ]
 
 
 def test_the_papers_dipole_runs_from_the_command_line(tmp_path):

@@ -109,12 +109,32 @@ MOVED_PREFIXES = {"tasks.": "dipole_torch.tasks."}
 def register_resolvers() -> None:
     """The resolvers ``configs/config.yaml`` uses: a resumed run's Hydra run directory is the
     checkpoint's (unless ``hydra.run.dir`` is given), and Hydra's own record goes to
-    ``.hydra/resume_<time>``, keeping the original run's ``.hydra/``."""
+    ``.hydra/resume_<time>``, keeping the original run's ``.hydra/``; a sweep's run directory
+    is named by its settings (``setting_suffix``)."""
     register_resolver(
         "checkpoint_dir",
         lambda resume, fresh: fresh if not resume else str(_run_dir_of(Path(resume))),
     )
     register_resolver("if_resumed", lambda resume, resumed, fresh: resumed if resume else fresh)
+    register_resolver("setting_suffix", setting_suffix)
+
+
+# Overrides that do not name a sweep's run directory: those in its name already (task, algo,
+# seed) and the run's settings that a resume may change (the budget, device, threads, ...).
+NOT_IN_DIRECTORY_NAMES = ("task", "algo", *RESUME_MAY_CHANGE)
+
+
+def setting_suffix(overrides) -> str:
+    """A sweep run's directory name after ``<task>_<algo>_seed<seed>``: ``_`` and its other
+    settings from the command line (``_algo.optimizer.M=4``), sorted, so that the runs of a
+    sweep over a hyperparameter do not share one directory; ``""`` where there are none
+    (a sweep over seeds, tasks or algorithms, or with another budget)."""
+    settings = sorted(
+        str(o).replace("/", "_")
+        for o in overrides
+        if str(o).split("=", 1)[0].lstrip("+~") not in NOT_IN_DIRECTORY_NAMES
+    )
+    return "_" + ",".join(settings) if settings else ""
 
 
 def _run_dir_of(resume: Path) -> Path:
