@@ -529,14 +529,20 @@ def test_config_differences_lists_dotted_keys():
         ("checkpoint_every=0", "checkpoint_every must be a positive integer, got 0"),
         ("seed=-1", "seed must be a non-negative integer"),
         ("resume=''", "resume must be the path of a checkpoint.pt"),
+        # The task's own device, set apart from the run's: checked as the run's is (a meta
+        # tensor failed deep in the task with a traceback, CUDA without CUDA with Hydra's).
+        ("task.env.device=meta", "task.env.device must be 'cpu', 'cuda', 'cuda:N' or 'mps'"),
+        ("task.env.device=cuda:x", "task.env.device must be 'cpu', 'cuda', 'cuda:N' or 'mps'"),
     ],
 )
 def test_more_bad_config_values(override, message):
     from hydra import compose, initialize_config_dir
 
     from dipole_torch.training.checks import check_config
+    from dipole_torch.training.config import register
     from dipole_torch.training.hydra_compat import VERSION_BASE
 
+    register()  # the schemas the configs extend (train.py registers them; run alone, this)
     with initialize_config_dir(str(ROOT / "configs"), **VERSION_BASE):
         cfg = compose("config", overrides=[override])
     with pytest.raises(ValueError) as error:

@@ -86,6 +86,9 @@ def check_config(cfg: DictConfig) -> None:
             "would exceed the trial budget",
         )
     check_device(str(cfg.device))
+    task_device = OmegaConf.select(cfg, "task.env.device")  # ${device} unless set apart
+    if isinstance(task_device, str) and task_device != cfg.device:
+        check_device(task_device, "task.env.device")
     block = cfg.task.get("block")
     if block is not None and block.trial < cfg.task.n0:
         raise ConfigValueError(
@@ -147,27 +150,27 @@ def _unknown_keys(node: DictConfig, prefix: str = "") -> list[str]:
     return unknown
 
 
-def check_device(device: str) -> None:
+def check_device(device: str, key: str = "device") -> None:
     """``cpu``, ``cuda``, ``cuda:N`` (a device this machine has) or ``mps`` (where torch has
-    it)."""
+    it); ``key``: the config key that holds it (``device``, ``task.env.device``)."""
     if not re.fullmatch(r"cpu|cuda(:\d+)?|mps", device):
         raise ConfigValueError(
-            "device", device, f"device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {device!r}"
+            key, device, f"{key} must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {device!r}"
         )
     if device.startswith("cuda"):
         if not torch.cuda.is_available():
             raise ConfigValueError(
-                "device", device, f"device={device!r} but CUDA is not available on this machine"
+                key, device, f"{key}={device!r} but CUDA is not available on this machine"
             )
         index = int(device.partition(":")[2] or 0)
         if index >= torch.cuda.device_count():
             count = torch.cuda.device_count()
             raise ConfigValueError(
-                "device", device, f"device={device!r} but this machine has {count} CUDA device(s)"
+                key, device, f"{key}={device!r} but this machine has {count} CUDA device(s)"
             )
     if device == "mps" and not torch.backends.mps.is_available():
         raise ConfigValueError(
-            "device", device, f"device={device!r} but MPS is not available on this machine"
+            key, device, f"{key}={device!r} but MPS is not available on this machine"
         )
 
 
