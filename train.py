@@ -29,6 +29,7 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from dipole_torch.training.config import register
@@ -67,9 +68,16 @@ def train(cfg: DictConfig) -> dict:
     with checks.reported(), run_directory.lock_run_directory(out):
         checkpoint = resume.load_resume(cfg, overrides) if cfg.resume else None  # its seed
         if checkpoint is None and (out / "checkpoint.pt").exists():
+            swept = HydraConfig.get().mode == RunMode.MULTIRUN
+            elsewhere = (
+                "or give this sweep another hydra.sweep.dir, or a hydra.sweep.subdir that tells "
+                "its runs apart (the budget, device and threads do not name a run's directory)"
+                if swept
+                else "or choose another hydra.run.dir"
+            )
             raise CheckpointError(
                 f"{out} already holds a run's checkpoint.pt; continue it with "
-                f"resume={out / 'checkpoint.pt'}, or choose another hydra.run.dir"
+                f"resume={out / 'checkpoint.pt'}, {elsewhere}"
             )
         run_directory.remove_stale_temporaries(out, OUTPUTS)  # left by a killed session
 

@@ -276,6 +276,15 @@ def test_a_sweep_over_a_hyperparameter_gives_each_run_its_own_directory(tmp_path
     ]
 
 
+def test_a_sweep_whose_runs_share_a_directory_says_how_to_tell_them_apart(tmp_path):
+    # The budget does not name a run's directory: a sweep over it alone sends both runs to
+    # one, and the second is refused, pointing at the sweep's directories (not hydra.run.dir).
+    out = train("-m", "algo=power", "trials=20,30", f"hydra.sweep.dir={tmp_path}", check=False)
+    assert out.returncode == 2
+    assert "already holds a run's checkpoint.pt" in out.stderr
+    assert "hydra.sweep.subdir" in out.stderr and "hydra.run.dir" not in out.stderr
+
+
 def test_the_papers_dipole_runs_from_the_command_line(tmp_path):
     train("task=multimodal", "algo=dipole_paper", "trials=40", f"hydra.run.dir={tmp_path}")
     results = json.loads((tmp_path / "results.json").read_text())
