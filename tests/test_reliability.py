@@ -641,6 +641,7 @@ def test_a_signal_writes_a_checkpoint_and_prints_the_resume_command(driver_repor
     assert "Traceback" not in stop["log"], stop["log"]
     assert f"stopped by {name} at" in stop["log"] and "resume with:" in stop["log"]
     assert 0 < stop["checkpoint_trials"] < SIGNAL_TRIALS
+    assert f"checkpoint at {stop['checkpoint_trials']} trials written to" in stop["log"]
     # The printed command, run as printed, finishes the run as if never stopped.
     assert stop["resumed_exit_code"] == 0, stop["resumed_log"]
     assert stop["identical"] == {"results": True, "policies": True, "checkpoint": True}
