@@ -757,6 +757,32 @@ def test_the_dp_sampler_refuses_what_would_corrupt_a_chain():
         DPMixtureState.from_labels(y, torch.zeros(6), prior)
 
 
+@pytest.mark.parametrize("method", ["neal8", "slice"])
+def test_a_chain_may_start_with_a_component_that_holds_no_point(method):
+    """The paper's clustering starts from every policy's component, and a policy may own
+    none of the points clustered: the start's check refused that chain (the fuzz of long
+    runs, seed 31522, a ``ValueError`` at 3000 trials); the sampler gives the component no
+    point, as before the check, and the partition goes on from the occupied ones."""
+    from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
+
+    prior = NormalInverseWishartPrior.from_exploration(torch.zeros(2, dtype=F64), torch.eye(2))
+    y = torch.randn(12, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    occupied = DPMixtureState.from_labels(y, torch.tensor([0] * 6 + [1] * 6), prior)
+    start = DPMixtureState(
+        labels=occupied.labels,
+        means=torch.cat((occupied.means, torch.full((1, 2), 50.0, dtype=F64))),
+        covariances=torch.cat((occupied.covariances, 1e-4 * torch.eye(2, dtype=F64)[None])),
+        prior=prior,
+    )
+    with pytest.raises(ValueError, match="every component of means must hold a point"):
+        start.check(2, 12)  # a state to load or to score still needs every component
+    state = DPSampler(prior, method=method).fit(
+        y, num_sweeps=3, generator=torch.Generator().manual_seed(1), state=start
+    )
+    assert (state.counts > 0).all() and state.counts.sum() == 12
+    assert bool((state.means - 50.0).abs().gt(10.0).all())  # the empty one was dropped
+
+
 def test_small_inputs_of_the_wrong_kind_get_a_clear_error_or_are_taken_as_meant():
     import numpy as np
 

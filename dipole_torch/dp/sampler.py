@@ -191,7 +191,9 @@ class DPSampler:
         if state is None:
             state = self.start(y, init, generator)
         else:
-            state.check(self.prior.dim, y.shape[0])
+            # A component without a point may start a chain (the paper's clustering starts
+            # from every policy's component, and a policy may own none of the points).
+            state.check(self.prior.dim, y.shape[0], allow_empty=True)
         check_count(settle, "settle", optional=True)
         chain = self.to_chain(state)
         partition = None if settle is None else _partition(state.labels)

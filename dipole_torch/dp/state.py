@@ -47,11 +47,18 @@ class DPMixtureState:
     def num_components(self) -> int:
         return int(self.means.shape[0])
 
-    def check(self, dim: int, num_points: int | None = None, name: str = "state") -> None:
+    def check(
+        self,
+        dim: int,
+        num_points: int | None = None,
+        name: str = "state",
+        allow_empty: bool = False,
+    ) -> None:
         """Raise ``ValueError`` naming what does not fit a chain over ``dim``-dimensional
         points (``num_points`` of them, when given): tensors of the wrong kind or shape,
-        labels outside ``[0, K)`` or a component without a point, means that are not
-        finite, covariances that are not symmetric positive definite."""
+        labels outside ``[0, K)`` or a component without a point (unless ``allow_empty``:
+        a chain's start may hold one, which Algorithm 8 gives no point and drops), means
+        that are not finite, covariances that are not symmetric positive definite."""
         labels, means, covs = self.labels, self.means, self.covariances
         for key, value in (("labels", labels), ("means", means), ("covariances", covs)):
             if not isinstance(value, Tensor):
@@ -72,7 +79,8 @@ class DPMixtureState:
             )
         if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= k):
             raise ValueError(f"{name}.labels must lie in [0, {k}) (the components of means)")
-        if labels.numel() and bool((torch.bincount(labels, minlength=k) == 0).any()):
+        empty = labels.numel() and bool((torch.bincount(labels, minlength=k) == 0).any())
+        if empty and not allow_empty:
             raise ValueError(f"{name}: every component of means must hold a point of labels")
         check_finite(means, f"{name}.means")
         check_positive_definite(covs.to(DTYPE), f"{name}.covariances")
