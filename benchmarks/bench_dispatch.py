@@ -104,7 +104,7 @@ def dipole_trials_per_iteration(d: int, trials: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
     parser.add_argument("--ratio", type=float, default=5.0, help="the target: × IPOP-CMA-ES")
     parser.add_argument("--repeats", type=int, default=20000)

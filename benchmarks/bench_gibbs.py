@@ -107,7 +107,7 @@ def run_sklearn(y: torch.Tensor, seed: int, threads: int) -> tuple[float, int, t
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=2, help="seeds; the best time is kept")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
     parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])

@@ -218,7 +218,7 @@ def print_header(title: str, header: str) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--trials", type=int, default=500)
     parser.add_argument("--big-trials", type=int, default=60, help="trials at D >= 50")
     parser.add_argument("--dims", type=int, nargs="+", default=[2, 10, 50, 200])

@@ -75,7 +75,7 @@ def launcher(seeds: int, workers: int) -> tuple[float, np.ndarray]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=50)
     parser.add_argument("--workers", type=int, default=2, help="cores used by both paths")
     args = parser.parse_args()

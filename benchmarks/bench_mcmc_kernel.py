@@ -39,7 +39,7 @@ def data(points: int, dim: int, seed: int = 0) -> tuple[torch.Tensor, NormalInve
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--points", type=int, default=50)
     parser.add_argument("--dim", type=int, default=10)
     parser.add_argument("--sweeps", type=int, default=20)

@@ -75,7 +75,7 @@ def child(case: str, n: int, dim: int, m: int, threads: int) -> dict[str, float]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n", type=int, default=10_000)
     parser.add_argument("--dim", type=int, default=51, help="p, the dimension of y")
     parser.add_argument("--m", type=int, default=10, help="auxiliary components")

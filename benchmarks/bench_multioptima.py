@@ -801,7 +801,7 @@ def kept_cases(path: Path, grid: dict, methods: Sequence[str]) -> list:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=int, nargs="+", default=list(DIMS))
     parser.add_argument("--ks", type=int, nargs="+", default=list(KS))
     parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1 per (D, k)")

@@ -393,7 +393,7 @@ def summarize(
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--suite", choices=list(SUITES), default="cec2013",
         help="CEC 2013's F1-F10, or six functions of other kinds (MORE_FUNCTIONS)",

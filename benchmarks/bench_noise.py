@@ -271,7 +271,7 @@ def gap_table(cases: list[dict], dims: Sequence[int], noises: Sequence[float]) -
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=int, nargs="+", default=list(DIMS))
     parser.add_argument("--ks", type=int, nargs="+", default=list(KS))
     parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1 per (D, k)")

@@ -163,7 +163,7 @@ def _progress(i: int, n: int, case: dict) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--peaks", nargs="+", default=list(PEAKS), choices=PEAKS)
     parser.add_argument("--dims", type=int, nargs="+", default=list(DIMS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)

@@ -197,7 +197,7 @@ def floor_seconds(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
     parser.add_argument("--trials", type=int, default=500)
     parser.add_argument("--batch", type=int, default=256, help="copies in the floor's calls")

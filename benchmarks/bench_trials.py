@@ -96,7 +96,7 @@ def parse_options(pairs: Sequence[str]) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--functions", type=int, nargs="+", default=[6, 7, 9, 10])
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--budget", type=int, default=2000)

@@ -133,7 +133,7 @@ def optimizer_cpu(method: str, dim: int, k: int, seed: int, trials: int) -> tupl
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
     parser.add_argument("--ks", type=int, nargs="+", default=[2, 4, 8])
     parser.add_argument("--seeds", type=int, default=2, help="seeds 0 … N−1 per (D, k)")

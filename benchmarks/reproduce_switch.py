@@ -352,7 +352,7 @@ def summary_of(runs: list[dict]) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=10)
     parser.add_argument("--workers", type=int, default=2, help="processes (one per core)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
