@@ -104,10 +104,14 @@ def dipole_trials_per_iteration(d: int, trials: int) -> float:
 
 
 def main() -> None:
+    from argtypes import positive_float, positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
-    parser.add_argument("--ratio", type=float, default=5.0, help="the target: × IPOP-CMA-ES")
-    parser.add_argument("--repeats", type=int, default=20000)
+    parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10])
+    parser.add_argument(
+        "--ratio", type=positive_float, default=5.0, help="the target: × IPOP-CMA-ES"
+    )
+    parser.add_argument("--repeats", type=positive_int, default=20000)
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(setting_line())

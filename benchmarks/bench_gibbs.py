@@ -107,12 +107,16 @@ def run_sklearn(y: torch.Tensor, seed: int, threads: int) -> tuple[float, int, t
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=2, help="seeds; the best time is kept")
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
-    parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
-    parser.add_argument("--max-sweeps", type=int, default=30)
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument(
+        "--repeats", type=positive_int, default=2, help="seeds; the best time is kept"
+    )
+    parser.add_argument("--sizes", type=positive_int, nargs="+", default=[1000, 10000])
+    parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10])
+    parser.add_argument("--max-sweeps", type=positive_int, default=30)
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads")
     parser.add_argument("--device", default="cpu", help="where our sampler runs (sklearn: CPU)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

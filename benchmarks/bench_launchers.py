@@ -75,9 +75,11 @@ def launcher(seeds: int, workers: int) -> tuple[float, np.ndarray]:
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=50)
-    parser.add_argument("--workers", type=int, default=2, help="cores used by both paths")
+    parser.add_argument("--seeds", type=positive_int, default=50)
+    parser.add_argument("--workers", type=positive_int, default=2, help="cores used by both paths")
     args = parser.parse_args()
     timings = {}
     for name, run in (("lockstep", lockstep), ("launcher (joblib)", launcher)):

@@ -39,11 +39,13 @@ def data(points: int, dim: int, seed: int = 0) -> tuple[torch.Tensor, NormalInve
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--points", type=int, default=50)
-    parser.add_argument("--dim", type=int, default=10)
-    parser.add_argument("--sweeps", type=int, default=20)
-    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--points", type=positive_int, default=50)
+    parser.add_argument("--dim", type=positive_int, default=10)
+    parser.add_argument("--sweeps", type=positive_int, default=20)
+    parser.add_argument("--repeats", type=positive_int, default=7)
     args = parser.parse_args()
     torch.set_num_threads(1)
     y, prior = data(args.points, args.dim)

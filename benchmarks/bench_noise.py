@@ -271,15 +271,21 @@ def gap_table(cases: list[dict], dims: Sequence[int], noises: Sequence[float]) -
 
 
 def main(argv: Sequence[str] | None = None) -> None:
+    from argtypes import nonnegative_float, nonnegative_int, positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dims", type=int, nargs="+", default=list(DIMS))
-    parser.add_argument("--ks", type=int, nargs="+", default=list(KS))
-    parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1 per (D, k)")
-    parser.add_argument("--budget", type=int, default=BUDGET)
-    parser.add_argument("--noise", type=float, nargs="+", default=list(NOISE),
+    parser.add_argument("--dims", type=positive_int, nargs="+", default=list(DIMS))
+    parser.add_argument("--ks", type=positive_int, nargs="+", default=list(KS))
+    parser.add_argument(
+        "--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1 per (D, k)"
+    )
+    parser.add_argument("--budget", type=positive_int, default=BUDGET)
+    parser.add_argument("--noise", type=nonnegative_float, nargs="+", default=list(NOISE),
                         help="noise std as a fraction of the landscape's height")  # fmt: skip
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
-    parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
+    parser.add_argument(
+        "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
+    )
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "noise.json")
     parser.add_argument("--best-gap", action="store_true",
                         help="how far best()'s return lies above the truth (no JSON)")  # fmt: skip

@@ -163,12 +163,16 @@ def _progress(i: int, n: int, case: dict) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
+    from argtypes import nonnegative_int, positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--peaks", nargs="+", default=list(PEAKS), choices=PEAKS)
-    parser.add_argument("--dims", type=int, nargs="+", default=list(DIMS))
+    parser.add_argument("--dims", type=positive_int, nargs="+", default=list(DIMS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1")
-    parser.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
+    parser.add_argument("--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1")
+    parser.add_argument(
+        "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
+    )
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "precision.json")
     args = parser.parse_args(argv)
     tasks = [(k, d, m, s) for k in args.peaks for d in args.dims for m in args.methods

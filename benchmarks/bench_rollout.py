@@ -155,16 +155,24 @@ def print_viapoint(rows: list[dict], device: str) -> None:
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", choices=("cartpole", "viapoint", "all"), default="all")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--steps", type=int, default=1000, help="cart-pole steps per episode")
+    parser.add_argument(
+        "--steps", type=positive_int, default=1000, help="cart-pole steps per episode"
+    )
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant")
     parser.add_argument(
-        "--batches", type=int, nargs="+", default=[1, 10, 100, 1000], help="viapoint batch sizes"
+        "--batches",
+        type=positive_int,
+        nargs="+",
+        default=[1, 10, 100, 1000],
+        help="viapoint batch sizes",
     )
-    parser.add_argument("--repeats", type=int, default=5, help="viapoint timings per case")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="viapoint timings per case")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

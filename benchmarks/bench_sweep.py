@@ -197,11 +197,15 @@ def floor_seconds(
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dims", type=int, nargs="+", default=[2, 10])
-    parser.add_argument("--trials", type=int, default=500)
-    parser.add_argument("--batch", type=int, default=256, help="copies in the floor's calls")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10])
+    parser.add_argument("--trials", type=positive_int, default=500)
+    parser.add_argument(
+        "--batch", type=positive_int, default=256, help="copies in the floor's calls"
+    )
+    parser.add_argument("--repeats", type=positive_int, default=5)
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(setting_line())

@@ -267,11 +267,15 @@ def summarize(cases: list[dict], methods, budgets) -> tuple[str, dict]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
+    from argtypes import nonnegative_int, positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=SEEDS, help="seeds 0 … N−1")
-    parser.add_argument("--budgets", type=int, nargs="+", default=list(BUDGETS))
+    parser.add_argument("--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1")
+    parser.add_argument("--budgets", type=positive_int, nargs="+", default=list(BUDGETS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + OPT_IN)
-    parser.add_argument("--workers", type=int, default=2, help="processes")
+    parser.add_argument(
+        "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
+    )
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
     from bench_multioptima import add_keep_others, run_keeping_others
     from setting import machine, version

@@ -105,13 +105,19 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=50)
+    parser.add_argument("--runs", type=positive_int, default=50)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
-    parser.add_argument("--grid-step", type=int, default=10, help="trials between grid points")
-    parser.add_argument("--workers", type=int, default=2, help="processes (one per core)")
-    parser.add_argument("--chunks", type=int, default=2, help="jobs per task and algorithm")
+    parser.add_argument(
+        "--grid-step", type=positive_int, default=10, help="trials between grid points"
+    )
+    parser.add_argument("--workers", type=positive_int, default=2, help="processes (one per core)")
+    parser.add_argument(
+        "--chunks", type=positive_int, default=2, help="jobs per task and algorithm"
+    )
     parser.add_argument(
         "--compile", action="store_true", help="torch.compile the rollouts (pays ~1 min once)"
     )

@@ -152,11 +152,15 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
 
 
 def main() -> None:
+    from argtypes import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=10)
+    parser.add_argument("--runs", type=positive_int, default=10)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
-    parser.add_argument("--grid-step", type=int, default=5, help="trials between grid points")
-    parser.add_argument("--workers", type=int, default=2, help="processes (one per core)")
+    parser.add_argument(
+        "--grid-step", type=positive_int, default=5, help="trials between grid points"
+    )
+    parser.add_argument("--workers", type=positive_int, default=2, help="processes (one per core)")
     parser.add_argument("--threshold", type=float, default=0.9, help="reward of a found route")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)

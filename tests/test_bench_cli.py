@@ -1,6 +1,8 @@
 """The benchmark scripts' command lines: the ``--help`` text and bad option values."""
 
+import argparse
 import ast
+import importlib
 import re
 import sys
 from pathlib import Path
@@ -21,3 +23,80 @@ def test_the_help_describes_a_script_in_whole_sentences(script):
     assert 'description=__doc__.split("\\n\\n")[0]' in source
     first = ast.get_docstring(ast.parse(source), clean=False).split("\n\n")[0].rstrip()
     assert re.search(r"[.?!)]$", first), f"{script.name}: {first[-60:]!r}"
+
+
+# A count of 0 or below used to run nothing and write an empty report over the figure's JSON
+# (--seeds 0), or end in a traceback from inside the run (ZeroDivisionError, Pool(-1)).
+BAD_VALUES = [
+    ("bench_multioptima", "--seeds", "0"),
+    ("bench_multioptima", "--budgets", "-5"),
+    ("bench_multioptima", "--dims", "0"),
+    ("bench_multioptima", "--ks", "-1"),
+    ("bench_multioptima", "--workers", "-1"),
+    ("bench_niching", "--seeds", "0"),
+    ("bench_niching", "--budgets", "0"),
+    ("bench_niching", "--workers", "-2"),
+    ("bench_noise", "--budget", "0"),
+    ("bench_noise", "--noise", "-0.1"),
+    ("bench_precision", "--seeds", "0"),
+    ("bench_precision", "--dims", "0"),
+    ("bench_viapoint_qd", "--budgets", "0"),
+    ("bench_trials", "--seeds", "0"),
+    ("bench_trials", "--budget", "0"),
+    ("bench_whole_run", "--seeds", "0"),
+    ("bench_whole_run", "--trials", "0"),
+    ("bench_iteration", "--trials", "0"),
+    ("bench_iteration", "--seeds", "0"),
+    ("bench_sweep", "--batch", "0"),
+    ("bench_sweep", "--trials", "0"),
+    ("bench_dispatch", "--repeats", "0"),
+    ("bench_dispatch", "--ratio", "-1"),
+    ("bench_startup", "--repeats", "0"),
+    ("bench_gibbs", "--sizes", "0"),
+    ("bench_mcmc_kernel", "--sweeps", "0"),
+    ("bench_memory", "--n", "0"),
+    ("bench_rollout", "--steps", "0"),
+    ("bench_launchers", "--workers", "0"),
+    ("reproduce_figure1", "--runs", "0"),
+    ("reproduce_viapoint", "--workers", "0"),
+    ("reproduce_switch", "--grid-step", "0"),
+]
+
+
+@pytest.mark.parametrize(("script", "option", "value"), BAD_VALUES)
+def test_a_bad_count_is_an_argparse_error_naming_the_option(
+    script, option, value, monkeypatch, capsys
+):
+    module = importlib.import_module(script)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", option, value])
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_only(self, *args, **kwargs):  # a value taken would start the benchmark: stop
+        parse_args(self, *args, **kwargs)
+        raise AssertionError(f"{script}.py took {option} {value}")
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 2
+    assert f"argument {option}: must be" in capsys.readouterr().err
+
+
+def test_the_argument_types():
+    import argtypes
+
+    assert argtypes.positive_int("3") == 3
+    assert argtypes.nonnegative_int("0") == 0
+    assert argtypes.positive_float("0.5") == 0.5
+    assert argtypes.nonnegative_float("0") == 0.0
+    for parse, text in [
+        (argtypes.positive_int, "0"),
+        (argtypes.positive_int, "x"),
+        (argtypes.nonnegative_int, "-1"),
+        (argtypes.positive_float, "0"),
+        (argtypes.positive_float, "inf"),
+        (argtypes.nonnegative_float, "nan"),
+        (argtypes.nonnegative_float, "-0.1"),
+    ]:
+        with pytest.raises(argparse.ArgumentTypeError, match="must be"):
+            parse(text)
