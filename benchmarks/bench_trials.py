@@ -108,7 +108,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     torch.set_num_threads(1)
     options = parse_options(args.set)
     if any(not 1 <= n <= len(FUNCTIONS) for n in args.functions):
-        raise SystemExit(f"--functions must lie in 1..{len(FUNCTIONS)}")
+        parser.error(f"--functions must lie in 1..{len(FUNCTIONS)}")
+    # An unknown option or a bad value: said now, not as a traceback from the first run.
+    theta0, sigma_start, bounds = peers._start(FUNCTIONS[args.functions[0] - 1])
+    try:
+        Dipole(theta0, sigma_start, bounds=bounds, **options)
+    except (TypeError, ValueError) as error:
+        parser.error(f"--set: {error}")
     coarse, fine = ACCURACIES[0], ACCURACIES[2]
     header = ["function", *CLASSES, "policies", f"DIPOLE @{coarse:g} / @{fine:g}",
               f"NMMSO @{coarse:g} / @{fine:g}"]  # fmt: skip

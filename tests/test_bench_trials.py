@@ -52,3 +52,18 @@ def test_the_command_line_end_to_end(capsys):
     bench.main(["--functions", "2", "--seeds", "1", "--budget", "100"])
     out = capsys.readouterr().out
     assert "F2 equal maxima 1D (5 × 1)" in out and "NMMSO" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["--set", "nosuch=1"], "--set: unknown DIPOLE option(s) 'nosuch'"),
+        (["--functions", "11"], "--functions must lie in 1..10"),
+    ],
+)
+def test_a_bad_option_is_an_argparse_error_before_any_run(argv, said, capsys):
+    # An unknown --set key was a TypeError traceback from inside the first run.
+    with pytest.raises(SystemExit) as exit_:
+        bench.main(["--seeds", "1", "--budget", "50", *argv])
+    assert exit_.value.code == 2
+    assert said in capsys.readouterr().err
