@@ -130,6 +130,8 @@ def run_dipole(
                 snapshots[b] = (opt.policy_means.clone(), opt.trials, opt.best()[1])
     out = {}
     for b in budgets:
+        if b not in snapshots:
+            raise ValueError(f"budget {b} is below DIPOLE's first batch of {n0} trials")
         means, trials, best = snapshots[b]
         routes, rewards = _routes(task, means)
         out[b] = {"trials": trials, "returned": len(routes), "routes": _covered(routes, rewards),
@@ -284,6 +286,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))
     methods = [m for m in SHOWN if m in args.methods]
+    if any(m in CONFIGS for m in methods):  # DIPOLE's first batch is the task's n0 trials
+        from lockstep import compose_config
+
+        n0 = int(compose_config("task=viapoint", "device=cpu").task.n0)
+        if budgets[0] < n0:
+            parser.error(f"--budgets: {budgets[0]} is below DIPOLE's first batch of {n0} trials")
 
     tasks = [(m, s, budgets) for m in methods for s in range(args.seeds)]
 

@@ -100,3 +100,16 @@ def test_the_argument_types():
     ]:
         with pytest.raises(argparse.ArgumentTypeError, match="must be"):
             parse(text)
+
+
+def test_a_viapoint_budget_below_dipoles_first_batch_is_refused(tmp_path, capsys):
+    # It ran every peer, then reported DIPOLE's cases as KeyError(20), a "nan ± nan" row.
+    import bench_viapoint_qd
+
+    report = tmp_path / "qd.json"
+    with pytest.raises(SystemExit) as exit_:
+        argv = ["--budgets", "20", "--methods", "DIPOLE", "--workers", "0", "--json", str(report)]
+        bench_viapoint_qd.main(argv)
+    assert exit_.value.code == 2
+    assert "--budgets: 20 is below DIPOLE's first batch of 30 trials" in capsys.readouterr().err
+    assert not report.exists()
