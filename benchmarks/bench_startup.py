@@ -93,7 +93,8 @@ def main() -> None:
     from argtypes import positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--task", default="cartpole")
+    tasks = sorted(path.stem for path in (ROOT / "configs" / "task").glob("*.yaml"))
+    parser.add_argument("--task", default="cartpole", choices=tasks)
     parser.add_argument("--repeats", type=positive_int, default=5)
     args = parser.parse_args()
 

@@ -82,6 +82,24 @@ def test_a_bad_count_is_an_argparse_error_naming_the_option(
     assert f"argument {option}: must be" in capsys.readouterr().err
 
 
+def test_an_unknown_startup_task_is_an_argparse_error(monkeypatch, capsys):
+    # It timed the anchors, then failed in train.py's child with Hydra's error.
+    import bench_startup
+
+    monkeypatch.setattr(sys, "argv", ["bench_startup.py", "--task", "nosuch"])
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_only(self, *args, **kwargs):
+        parse_args(self, *args, **kwargs)
+        raise AssertionError("bench_startup.py took --task nosuch")
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+    with pytest.raises(SystemExit) as exit_:
+        bench_startup.main()
+    assert exit_.value.code == 2
+    assert "argument --task: invalid choice: 'nosuch'" in capsys.readouterr().err
+
+
 def test_the_argument_types():
     import argtypes
 
