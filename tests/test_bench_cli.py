@@ -131,3 +131,10 @@ def test_a_viapoint_budget_below_dipoles_first_batch_is_refused(tmp_path, capsys
     assert exit_.value.code == 2
     assert "--budgets: 20 is below DIPOLE's first batch of 30 trials" in capsys.readouterr().err
     assert not report.exists()
+
+
+def test_the_rollout_table_shows_no_nan_without_the_compiled_run():
+    import bench_rollout
+
+    assert bench_rollout.ratios(2.0, None, 1.0) == "     2.00x |             -"
+    assert bench_rollout.ratios(2.0, 4.0, 1.0) == "     2.00x |         4.00x"
