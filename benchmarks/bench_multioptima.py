@@ -841,7 +841,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     cases.sort(key=lambda c: (order[c["method"]], c["dim"], c["k"], c["seed"]))
     text, summary = summarize(cases, methods, args.dims, args.ks, budgets)
     print(text)
-    print(f"\nwall time {wall:.1f} s on {args.workers} process(es)")
+    print(f"\nwall time {wall:.1f} s on {max(args.workers, 1)} process(es)")
     config = {
         "dims": args.dims,
         "ks": args.ks,

@@ -441,7 +441,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     cases.sort(key=lambda c: (order[c["method"]], c["function"], c["seed"]))
     text, summary = summarize(cases, methods, numbers, budgets, functions)
     print(text)
-    print(f"wall time {wall:.1f} s on {args.workers} process(es)")
+    print(f"wall time {wall:.1f} s on {max(args.workers, 1)} process(es)")
     config = {
         **({"suite": args.suite} if args.suite != "cec2013" else {}),
         "functions": numbers,

@@ -311,7 +311,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     cases.sort(key=lambda c: (order[c["method"]], c["seed"]))
     text, summary = summarize(cases, methods, budgets)
     print(text)
-    print(f"wall time {wall:.1f} s on {args.workers} process(es)")
+    print(f"wall time {wall:.1f} s on {max(args.workers, 1)} process(es)")
     versions = {package: version(package) for package in ("torch", "ribs")}
     report = {
         "config": {"seeds": args.seeds, "budgets": budgets, "methods": methods,
