@@ -107,7 +107,7 @@ def run_sklearn(y: torch.Tensor, seed: int, threads: int) -> tuple[float, int, t
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import device, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -117,7 +117,9 @@ def main() -> None:
     parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10])
     parser.add_argument("--max-sweeps", type=positive_int, default=30)
     parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads")
-    parser.add_argument("--device", default="cpu", help="where our sampler runs (sklearn: CPU)")
+    parser.add_argument(
+        "--device", type=device, default="cpu", help="where our sampler runs (sklearn: CPU)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     header = (

@@ -155,12 +155,12 @@ def print_viapoint(rows: list[dict], device: str) -> None:
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import device, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", choices=("cartpole", "viapoint", "all"), default="all")
     parser.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", type=device, default="cpu")
     parser.add_argument(
         "--steps", type=positive_int, default=1000, help="cart-pole steps per episode"
     )

@@ -138,3 +138,26 @@ def test_the_rollout_table_shows_no_nan_without_the_compiled_run():
 
     assert bench_rollout.ratios(2.0, None, 1.0) == "     2.00x |             -"
     assert bench_rollout.ratios(2.0, 4.0, 1.0) == "     2.00x |         4.00x"
+
+
+@pytest.mark.parametrize("script", ["bench_gibbs", "bench_rollout"])
+def test_a_device_this_machine_lacks_is_an_argparse_error(script, monkeypatch, capsys):
+    # "--device cuda" on a CPU-only torch was an AssertionError from the first tensor moved.
+    import argtypes
+    import torch
+
+    assert argtypes.device("cpu") == "cpu"
+    bad = "nosuch" if torch.cuda.is_available() else "cuda"
+    module = importlib.import_module(script)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", "--device", bad])
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_only(self, *args, **kwargs):
+        parse_args(self, *args, **kwargs)
+        raise AssertionError(f"{script}.py took --device {bad}")
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 2
+    assert "argument --device: " in capsys.readouterr().err
