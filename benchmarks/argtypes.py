@@ -5,6 +5,7 @@ empty report written over a figure's JSON, or a traceback from deep inside a run
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def positive_int(text: str) -> int:
@@ -62,3 +63,15 @@ def device(text: str) -> str:
     if kind == "mps" and not torch.backends.mps.is_available():
         raise argparse.ArgumentTypeError(f"{text!r}: torch sees no MPS device")
     return text
+
+
+def report_path(text: str) -> Path:
+    """A file to write a JSON report to: not a directory, and no file on its way (its missing
+    directories are made when it is written), so that a run does not end failing to write."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a directory, not a file")
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise argparse.ArgumentTypeError(f"{text!r}: {str(parent)!r} is not a directory")
+    return path

@@ -790,7 +790,12 @@ def kept_cases(path: Path, grid: dict, methods: Sequence[str]) -> list:
     others' earlier cases rather than by running them again (every method here is seeded from
     its case: a rerun gives the same results; only their timings are the earlier run's).
     The report's config must equal ``grid`` on each of its keys."""
-    report = json.loads(path.read_text())
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise SystemExit(
+            f"--keep-others: no report to keep cases from at {path}: {error}"
+        ) from None
     for key, value in grid.items():
         if report["config"][key] != value:
             raise SystemExit(
@@ -801,7 +806,7 @@ def kept_cases(path: Path, grid: dict, methods: Sequence[str]) -> list:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_int, positive_int
+    from argtypes import nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=positive_int, nargs="+", default=list(DIMS))
@@ -814,7 +819,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
     )
-    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "multioptima.json")
+    parser.add_argument(
+        "--json", type=report_path, default=ROOT / "docs" / "figures" / "multioptima.json"
+    )
     add_keep_others(parser)
     args = parser.parse_args(argv)
     budgets = sorted(set(args.budgets))

@@ -393,7 +393,7 @@ def summarize(
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_int, positive_int
+    from argtypes import nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -412,7 +412,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
     )
     parser.add_argument(
-        "--json", type=Path,
+        "--json", type=report_path,
         help="the report (default: docs/figures/niching.json, niching_more.json with --suite more)",
     )  # fmt: skip
     peers.add_keep_others(parser)

@@ -271,7 +271,7 @@ def gap_table(cases: list[dict], dims: Sequence[int], noises: Sequence[float]) -
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_float, nonnegative_int, positive_int
+    from argtypes import nonnegative_float, nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=positive_int, nargs="+", default=list(DIMS))
@@ -286,7 +286,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
     )
-    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "noise.json")
+    parser.add_argument(
+        "--json", type=report_path, default=ROOT / "docs" / "figures" / "noise.json"
+    )
     parser.add_argument("--best-gap", action="store_true",
                         help="how far best()'s return lies above the truth (no JSON)")  # fmt: skip
     args = parser.parse_args(argv)

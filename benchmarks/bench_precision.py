@@ -163,7 +163,7 @@ def _progress(i: int, n: int, case: dict) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_int, positive_int
+    from argtypes import nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--peaks", nargs="+", default=list(PEAKS), choices=PEAKS)
@@ -173,7 +173,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
     )
-    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "precision.json")
+    parser.add_argument(
+        "--json", type=report_path, default=ROOT / "docs" / "figures" / "precision.json"
+    )
     args = parser.parse_args(argv)
     tasks = [(k, d, m, s) for k in args.peaks for d in args.dims for m in args.methods
              for s in range(args.seeds)]  # fmt: skip

@@ -269,7 +269,7 @@ def summarize(cases: list[dict], methods, budgets) -> tuple[str, dict]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_int, positive_int
+    from argtypes import nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1")
@@ -278,7 +278,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
     )
-    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "figures" / "viapoint_qd.json")
+    parser.add_argument(
+        "--json", type=report_path, default=ROOT / "docs" / "figures" / "viapoint_qd.json"
+    )
     from bench_multioptima import add_keep_others, run_keeping_others
     from setting import machine, version
 

@@ -161,3 +161,46 @@ def test_a_device_this_machine_lacks_is_an_argparse_error(script, monkeypatch, c
         module.main()
     assert exit_.value.code == 2
     assert "argument --device: " in capsys.readouterr().err
+
+
+REPORTS = [
+    "bench_multioptima",
+    "bench_niching",
+    "bench_noise",
+    "bench_precision",
+    "bench_viapoint_qd",
+]
+
+
+@pytest.mark.parametrize("script", REPORTS)
+def test_a_json_path_that_cannot_be_written_is_refused_before_the_run(
+    script, tmp_path, monkeypatch, capsys
+):
+    # A directory given as --json failed with IsADirectoryError after the whole run.
+    module = importlib.import_module(script)
+    (tmp_path / "file").write_text("")
+    for bad, said in [(tmp_path, "is a directory"), (tmp_path / "file" / "x.json", "not a dir")]:
+        monkeypatch.setattr(sys, "argv", [f"{script}.py", "--json", str(bad)])
+        parse_args = argparse.ArgumentParser.parse_args
+
+        def parse_only(self, *args, parse_args=parse_args, bad=bad, **kwargs):
+            parse_args(self, *args, **kwargs)
+            raise AssertionError(f"{script}.py took --json {bad}")
+
+        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+        with pytest.raises(SystemExit) as exit_:
+            module.main()
+        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_args)
+        assert exit_.value.code == 2
+        assert "argument --json: " in (err := capsys.readouterr().err) and said in err
+
+
+def test_keep_others_without_a_report_says_so(tmp_path):
+    # It was a FileNotFoundError traceback.
+    import bench_multioptima
+
+    missing = tmp_path / "missing.json"
+    argv = ["--dims", "2", "--ks", "2", "--seeds", "1", "--budgets", "50", "--workers", "0"]
+    with pytest.raises(SystemExit, match="--keep-others: no report to keep cases from at"):
+        bench_multioptima.main([*argv, "--json", str(missing), "--keep-others"])
+    assert not missing.exists()
