@@ -414,9 +414,11 @@ def aggregate(roots: list[Path], out: Path, grid_step: int, allow_incomplete: bo
 
 
 def main(argv: list[str] | None = None) -> int:
+    from argtypes import output_dir
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("multirun_dirs", nargs="+", type=Path, metavar="MULTIRUN_DIR")
-    parser.add_argument("--out", type=Path, required=True, help="directory for PNGs and JSON")
+    parser.add_argument("--out", type=output_dir, required=True, help="directory for PNGs and JSON")
     parser.add_argument("--grid-step", type=int, default=10, help="trials between grid points")
     parser.add_argument(
         "--allow-incomplete",

@@ -75,3 +75,13 @@ def report_path(text: str) -> Path:
         if parent.exists() and not parent.is_dir():
             raise argparse.ArgumentTypeError(f"{text!r}: {str(parent)!r} is not a directory")
     return path
+
+
+def output_dir(text: str) -> Path:
+    """A directory to write figures and JSON to (made if missing): not an existing file, and
+    no file on its way."""
+    path = Path(text)
+    for at in (path, *path.parents):
+        if at.exists() and not at.is_dir():
+            raise argparse.ArgumentTypeError(f"{text!r}: {str(at)!r} is not a directory")
+    return path

@@ -152,11 +152,11 @@ def learn(job: tuple) -> tuple[tuple, list[dict], float]:
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import output_dir, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=positive_int, default=10)
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
+    parser.add_argument("--out", type=output_dir, default=ROOT / "docs" / "figures")
     parser.add_argument(
         "--grid-step", type=positive_int, default=5, help="trials between grid points"
     )

@@ -204,3 +204,25 @@ def test_keep_others_without_a_report_says_so(tmp_path):
     with pytest.raises(SystemExit, match="--keep-others: no report to keep cases from at"):
         bench_multioptima.main([*argv, "--json", str(missing), "--keep-others"])
     assert not missing.exists()
+
+
+@pytest.mark.parametrize(
+    "script", ["reproduce_figure1", "reproduce_viapoint", "reproduce_switch", "aggregate"]
+)
+def test_an_out_that_is_a_file_is_an_argparse_error(script, tmp_path, monkeypatch, capsys):
+    # It was a FileExistsError traceback from out.mkdir().
+    module = importlib.import_module(script)
+    (tmp_path / "file").write_text("")
+    argv = [f"{script}.py", "--out", str(tmp_path / "file")]
+    monkeypatch.setattr(sys, "argv", argv + ([str(tmp_path)] if script == "aggregate" else []))
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_only(self, *args, **kwargs):
+        parse_args(self, *args, **kwargs)
+        raise AssertionError(f"{script}.py took --out {tmp_path / 'file'}")
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 2
+    assert "argument --out: " in capsys.readouterr().err
