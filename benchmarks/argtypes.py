@@ -85,3 +85,11 @@ def output_dir(text: str) -> Path:
         if at.exists() and not at.is_dir():
             raise argparse.ArgumentTypeError(f"{text!r}: {str(at)!r} is not a directory")
     return path
+
+
+class Distinct(argparse.Action):
+    """A ``nargs="+"`` option's values, each once in the order given: ``--dims 2 2`` ran every
+    case twice and counted both (``8/8`` runs of one seed)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, list(dict.fromkeys(values)))

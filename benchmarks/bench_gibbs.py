@@ -107,14 +107,16 @@ def run_sklearn(y: torch.Tensor, seed: int, threads: int) -> tuple[float, int, t
 
 
 def main() -> None:
-    from argtypes import device, positive_int
+    from argtypes import Distinct, device, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--repeats", type=positive_int, default=2, help="seeds; the best time is kept"
     )
-    parser.add_argument("--sizes", type=positive_int, nargs="+", default=[1000, 10000])
-    parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10])
+    parser.add_argument(
+        "--sizes", type=positive_int, nargs="+", action=Distinct, default=[1000, 10000]
+    )
+    parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=[2, 10])
     parser.add_argument("--max-sweeps", type=positive_int, default=30)
     parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads")
     parser.add_argument(

@@ -218,12 +218,14 @@ def print_header(title: str, header: str) -> None:
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import Distinct, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--trials", type=positive_int, default=500)
     parser.add_argument("--big-trials", type=positive_int, default=60, help="trials at D >= 50")
-    parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10, 50, 200])
+    parser.add_argument(
+        "--dims", type=positive_int, nargs="+", action=Distinct, default=[2, 10, 50, 200]
+    )
     parser.add_argument("--seeds", type=positive_int, default=2)
     parser.add_argument("--count-ops", action="store_true", help="count torch calls (slower)")
     args = parser.parse_args()

@@ -393,20 +393,28 @@ def summarize(
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_int, positive_int, report_path
+    from argtypes import Distinct, nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--suite", choices=list(SUITES), default="cec2013",
         help="CEC 2013's F1-F10, or six functions of other kinds (MORE_FUNCTIONS)",
     )  # fmt: skip
-    parser.add_argument("--functions", type=int, nargs="+", help="numbers from 1 (default: all)")
+    parser.add_argument(
+        "--functions", type=int, nargs="+", action=Distinct, help="numbers from 1 (default: all)"
+    )
     parser.add_argument(
         "--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1 per function"
     )
-    parser.add_argument("--budgets", type=positive_int, nargs="+", default=list(BUDGETS))
     parser.add_argument(
-        "--methods", nargs="+", default=list(METHODS), choices=METHODS + peers.OPT_IN
+        "--budgets", type=positive_int, nargs="+", action=Distinct, default=list(BUDGETS)
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        action=Distinct,
+        default=list(METHODS),
+        choices=METHODS + peers.OPT_IN,
     )
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"

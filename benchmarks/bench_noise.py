@@ -271,18 +271,21 @@ def gap_table(cases: list[dict], dims: Sequence[int], noises: Sequence[float]) -
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_float, nonnegative_int, positive_int, report_path
+    from argtypes import Distinct, nonnegative_float, nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dims", type=positive_int, nargs="+", default=list(DIMS))
-    parser.add_argument("--ks", type=positive_int, nargs="+", default=list(KS))
+    parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=list(DIMS))
+    parser.add_argument("--ks", type=positive_int, nargs="+", action=Distinct, default=list(KS))
     parser.add_argument(
         "--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1 per (D, k)"
     )
     parser.add_argument("--budget", type=positive_int, default=BUDGET)
-    parser.add_argument("--noise", type=nonnegative_float, nargs="+", default=list(NOISE),
+    parser.add_argument("--noise", type=nonnegative_float, nargs="+", action=Distinct,
+                        default=list(NOISE),
                         help="noise std as a fraction of the landscape's height")  # fmt: skip
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument(
+        "--methods", nargs="+", action=Distinct, default=list(METHODS), choices=list(METHODS)
+    )
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"
     )

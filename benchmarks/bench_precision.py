@@ -163,12 +163,14 @@ def _progress(i: int, n: int, case: dict) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import nonnegative_int, positive_int, report_path
+    from argtypes import Distinct, nonnegative_int, positive_int, report_path
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--peaks", nargs="+", default=list(PEAKS), choices=PEAKS)
-    parser.add_argument("--dims", type=positive_int, nargs="+", default=list(DIMS))
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--peaks", nargs="+", action=Distinct, default=list(PEAKS), choices=PEAKS)
+    parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=list(DIMS))
+    parser.add_argument(
+        "--methods", nargs="+", action=Distinct, default=list(METHODS), choices=METHODS
+    )
     parser.add_argument("--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1")
     parser.add_argument(
         "--workers", type=nonnegative_int, default=2, help="processes (0: this one)"

@@ -155,7 +155,7 @@ def print_viapoint(rows: list[dict], device: str) -> None:
 
 
 def main() -> None:
-    from argtypes import device, positive_int
+    from argtypes import Distinct, device, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", choices=("cartpole", "viapoint", "all"), default="all")
@@ -169,6 +169,7 @@ def main() -> None:
         "--batches",
         type=positive_int,
         nargs="+",
+        action=Distinct,
         default=[1, 10, 100, 1000],
         help="viapoint batch sizes",
     )

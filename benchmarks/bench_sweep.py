@@ -197,10 +197,10 @@ def floor_seconds(
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import Distinct, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dims", type=positive_int, nargs="+", default=[2, 10])
+    parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=[2, 10])
     parser.add_argument("--trials", type=positive_int, default=500)
     parser.add_argument(
         "--batch", type=positive_int, default=256, help="copies in the floor's calls"

@@ -96,10 +96,10 @@ def parse_options(pairs: Sequence[str]) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import positive_int
+    from argtypes import Distinct, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--functions", type=int, nargs="+", default=[6, 7, 9, 10])
+    parser.add_argument("--functions", type=int, nargs="+", action=Distinct, default=[6, 7, 9, 10])
     parser.add_argument("--seeds", type=positive_int, default=4)
     parser.add_argument("--budget", type=positive_int, default=2000)
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",

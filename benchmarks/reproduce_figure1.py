@@ -105,11 +105,13 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
 
 
 def main() -> None:
-    from argtypes import output_dir, positive_int
+    from argtypes import Distinct, output_dir, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=positive_int, default=50)
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument(
+        "--tasks", nargs="+", action=Distinct, default=list(TASKS), choices=list(TASKS)
+    )
     parser.add_argument("--out", type=output_dir, default=ROOT / "docs" / "figures")
     parser.add_argument(
         "--grid-step", type=positive_int, default=10, help="trials between grid points"

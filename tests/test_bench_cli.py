@@ -226,3 +226,34 @@ def test_an_out_that_is_a_file_is_an_argparse_error(script, tmp_path, monkeypatc
         module.main()
     assert exit_.value.code == 2
     assert "argument --out: " in capsys.readouterr().err
+
+
+class Parsed(Exception):
+    """Raised with the namespace a script parsed, before it runs anything."""
+
+
+@pytest.mark.parametrize(
+    ("script", "argv", "expected"),
+    [
+        ("bench_precision", ["--peaks", "cone", "cone", "--dims", "2", "2"], {"dims": [2]}),
+        ("bench_precision", ["--methods", "CMA-ES", "CMA-ES"], {"methods": ["CMA-ES"]}),
+        ("bench_multioptima", ["--dims", "5", "2", "5", "--ks", "2", "2"], {"dims": [5, 2]}),
+        ("bench_noise", ["--noise", "0.1", "0", "0.1"], {"noise": [0.1, 0.0]}),
+        ("bench_whole_run", ["--methods", "PoWER", "PoWER"], {"methods": ["PoWER"]}),
+        ("bench_trials", ["--functions", "7", "7"], {"functions": [7]}),
+    ],
+)
+def test_a_list_option_takes_each_value_once(script, argv, expected, monkeypatch):
+    # bench_precision.py --dims 2 2 ran every case twice and reported 1 seed as "(8/8)".
+    module = importlib.import_module(script)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_only(self, *args, **kwargs):
+        raise Parsed(parse_args(self, *args, **kwargs))
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+    with pytest.raises(Parsed) as parsed:
+        module.main()
+    namespace = vars(parsed.value.args[0])
+    assert {key: namespace[key] for key in expected} == expected
