@@ -13,6 +13,14 @@ def positive_int(text: str) -> int:
     return _int_at_least(text, 1, "a positive integer")
 
 
+def positive_even_int(text: str) -> int:
+    """An even integer ≥ 2: ``--ks``, the landscapes' optima (half bumps, half sharp peaks)."""
+    value = _int_at_least(text, 2, "an even integer >= 2")
+    if value % 2:
+        raise argparse.ArgumentTypeError(f"must be an even integer >= 2, got {text!r}")
+    return value
+
+
 def nonnegative_int(text: str) -> int:
     """An integer ≥ 0: ``--workers``, where 0 means this process."""
     return _int_at_least(text, 0, "an integer >= 0")

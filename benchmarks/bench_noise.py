@@ -271,11 +271,20 @@ def gap_table(cases: list[dict], dims: Sequence[int], noises: Sequence[float]) -
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from argtypes import Distinct, nonnegative_float, nonnegative_int, positive_int, report_path
+    from argtypes import (
+        Distinct,
+        nonnegative_float,
+        nonnegative_int,
+        positive_even_int,
+        positive_int,
+        report_path,
+    )
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=list(DIMS))
-    parser.add_argument("--ks", type=positive_int, nargs="+", action=Distinct, default=list(KS))
+    parser.add_argument(
+        "--ks", type=positive_even_int, nargs="+", action=Distinct, default=list(KS)
+    )
     parser.add_argument(
         "--seeds", type=positive_int, default=SEEDS, help="seeds 0 … N−1 per (D, k)"
     )

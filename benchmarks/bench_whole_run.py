@@ -133,11 +133,13 @@ def optimizer_cpu(method: str, dim: int, k: int, seed: int, trials: int) -> tupl
 
 
 def main() -> None:
-    from argtypes import Distinct, positive_int
+    from argtypes import Distinct, positive_even_int, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=[2, 10])
-    parser.add_argument("--ks", type=positive_int, nargs="+", action=Distinct, default=[2, 4, 8])
+    parser.add_argument(
+        "--ks", type=positive_even_int, nargs="+", action=Distinct, default=[2, 4, 8]
+    )
     parser.add_argument("--seeds", type=positive_int, default=2, help="seeds 0 … N−1 per (D, k)")
     parser.add_argument("--trials", type=positive_int, default=2000)
     parser.add_argument(

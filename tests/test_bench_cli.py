@@ -32,6 +32,9 @@ BAD_VALUES = [
     ("bench_multioptima", "--budgets", "-5"),
     ("bench_multioptima", "--dims", "0"),
     ("bench_multioptima", "--ks", "-1"),
+    ("bench_multioptima", "--ks", "3"),  # make_landscape: k even (was "0/0 (1 err)")
+    ("bench_noise", "--ks", "5"),
+    ("bench_whole_run", "--ks", "1"),
     ("bench_multioptima", "--workers", "-1"),
     ("bench_niching", "--seeds", "0"),
     ("bench_niching", "--budgets", "0"),
@@ -105,12 +108,15 @@ def test_the_argument_types():
 
     assert argtypes.positive_int("3") == 3
     assert argtypes.nonnegative_int("0") == 0
+    assert argtypes.positive_even_int("4") == 4
     assert argtypes.positive_float("0.5") == 0.5
     assert argtypes.nonnegative_float("0") == 0.0
     for parse, text in [
         (argtypes.positive_int, "0"),
         (argtypes.positive_int, "x"),
         (argtypes.nonnegative_int, "-1"),
+        (argtypes.positive_even_int, "3"),
+        (argtypes.positive_even_int, "0"),
         (argtypes.positive_float, "0"),
         (argtypes.positive_float, "inf"),
         (argtypes.nonnegative_float, "nan"),
