@@ -104,6 +104,21 @@ def learn(job: tuple) -> tuple[tuple, list[np.ndarray], float]:
     return job, history, time.perf_counter() - start
 
 
+def make_jobs(
+    tasks: list[str], runs: int, chunks: int, budgets: dict, compile: bool
+) -> list[tuple]:
+    """``learn``'s jobs: per task and algorithm, the runs in ``chunks`` parts (none empty:
+    ``--chunks`` above ``--runs`` made jobs of no seeds, an IndexError after the runs), each
+    with its generator seed."""
+    return [
+        (name, algo, seeds.tolist(), budgets[name][0], compile, 1000 + 100 * t + 10 * a + c)
+        for t, name in enumerate(tasks)
+        for a, algo in enumerate(ALGORITHMS)
+        for c, seeds in enumerate(np.array_split(np.arange(runs), chunks))
+        if len(seeds)
+    ]
+
+
 def main() -> None:
     from argtypes import Distinct, output_dir, positive_int
 
@@ -128,12 +143,10 @@ def main() -> None:
     json_path = args.out / "figure1.json"
     summary = json.loads(json_path.read_text()) if json_path.exists() else {}
     budgets = {name: load_task(name)[1:] for name in args.tasks}
-    jobs = [
-        (name, algo, seeds.tolist(), budgets[name][0], args.compile, 1000 + 100 * t + 10 * a + c)
-        for t, name in enumerate(args.tasks)
-        for a, algo in enumerate(ALGORITHMS)
-        for c, seeds in enumerate(np.array_split(np.arange(args.runs), args.chunks))
-    ]
+    smallest = min(trials for trials, _ in budgets.values())
+    if args.grid_step > smallest:
+        parser.error(f"--grid-step {args.grid_step} leaves no grid point in {smallest} trials")
+    jobs = make_jobs(args.tasks, args.runs, args.chunks, budgets, args.compile)
     jobs.sort(key=lambda job: job[1] != "DIPOLE")  # longest jobs first: better load balance
     histories: dict = {(name, algo): {} for name in args.tasks for algo in ALGORITHMS}
     seconds: dict = {(name, algo): 0.0 for name in args.tasks for algo in ALGORITHMS}

@@ -263,3 +263,34 @@ def test_a_list_option_takes_each_value_once(script, argv, expected, monkeypatch
         module.main()
     namespace = vars(parsed.value.args[0])
     assert {key: namespace[key] for key in expected} == expected
+
+
+def test_figure1_jobs_hold_seeds_and_keep_their_generator_seeds():
+    import reproduce_figure1
+
+    budgets = {"cartpole": (500, 30)}
+    jobs = reproduce_figure1.make_jobs(["cartpole"], 2, 4, budgets, False)
+    assert all(job[2] for job in jobs)  # --chunks 4 --runs 2: no job without seeds
+    assert [(job[1], job[2], job[5]) for job in jobs if job[1] == "DIPOLE"] == [
+        ("DIPOLE", [0], 1000),
+        ("DIPOLE", [1], 1001),
+    ]
+    assert len(reproduce_figure1.make_jobs(["cartpole"], 50, 2, budgets, False)) == 8
+
+
+def test_figure1_grid_step_above_the_budget_is_refused_before_the_runs(
+    tmp_path, monkeypatch, capsys
+):
+    # It ran every run, then failed with an IndexError on an empty grid.
+    import reproduce_figure1
+
+    def no_pool(*args, **kwargs):
+        raise AssertionError("the runs started")
+
+    monkeypatch.setattr(reproduce_figure1.multiprocessing, "get_context", no_pool)
+    argv = ["reproduce_figure1.py", "--runs", "1", "--tasks", "cartpole", "--grid-step", "501"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--out", str(tmp_path)])
+    with pytest.raises(SystemExit) as exit_:
+        reproduce_figure1.main()
+    assert exit_.value.code == 2
+    assert "--grid-step 501 leaves no grid point in 500 trials" in capsys.readouterr().err
