@@ -13,6 +13,16 @@ def positive_int(text: str) -> int:
     return _int_at_least(text, 1, "a positive integer")
 
 
+def at_least(low: int):
+    """An integer ≥ ``low``: ``at_least(2)`` for a count of points a covariance is taken of."""
+
+    def parse(text: str) -> int:
+        return _int_at_least(text, low, f"an integer >= {low}")
+
+    parse.__name__ = f"at_least_{low}"
+    return parse
+
+
 def positive_even_int(text: str) -> int:
     """An even integer ≥ 2: ``--ks``, the landscapes' optima (half bumps, half sharp peaks)."""
     value = _int_at_least(text, 2, "an even integer >= 2")

@@ -104,10 +104,10 @@ def dipole_trials_per_iteration(d: int, trials: int) -> float:
 
 
 def main() -> None:
-    from argtypes import Distinct, positive_float, positive_int
+    from argtypes import Distinct, at_least, positive_float, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=[2, 10])
+    parser.add_argument("--dims", type=at_least(2), nargs="+", action=Distinct, default=[2, 10])
     parser.add_argument(
         "--ratio", type=positive_float, default=5.0, help="the target: × IPOP-CMA-ES"
     )

@@ -49,7 +49,7 @@ def prior_for(y: torch.Tensor) -> NormalInverseWishartPrior:
     d = y.shape[1]
     return NormalInverseWishartPrior(
         mean_loc=y.mean(0),
-        mean_covariance=torch.cov(y.T),
+        mean_covariance=torch.cov(y.T).reshape(d, d),  # (a scalar at D = 1)
         df=d + 6.0,
         scale=10.0 * torch.eye(d, dtype=DTYPE, device=y.device),
         regularization=1e-3 * torch.eye(d, dtype=DTYPE, device=y.device),
@@ -107,14 +107,14 @@ def run_sklearn(y: torch.Tensor, seed: int, threads: int) -> tuple[float, int, t
 
 
 def main() -> None:
-    from argtypes import Distinct, device, positive_int
+    from argtypes import Distinct, at_least, device, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--repeats", type=positive_int, default=2, help="seeds; the best time is kept"
     )
     parser.add_argument(
-        "--sizes", type=positive_int, nargs="+", action=Distinct, default=[1000, 10000]
+        "--sizes", type=at_least(2), nargs="+", action=Distinct, default=[1000, 10000]
     )
     parser.add_argument("--dims", type=positive_int, nargs="+", action=Distinct, default=[2, 10])
     parser.add_argument("--max-sweeps", type=positive_int, default=30)
@@ -123,6 +123,10 @@ def main() -> None:
         "--device", type=device, default="cpu", help="where our sampler runs (sklearn: CPU)"
     )
     args = parser.parse_args()
+    # The prior's mean covariance is the data's (N > D), sklearn's fit has 10 components.
+    if min(args.sizes) < max(max(args.dims) + 1, 10):
+        least = max(max(args.dims) + 1, 10)
+        parser.error(f"--sizes {min(args.sizes)}: N must be at least {least} (> D, >= 10)")
     torch.set_num_threads(args.threads)
     header = (
         f"{'N':>6} {'D':>3} {'ours s':>8} {'sweeps':>6} {'s/sweep':>8} {'ours ARI':>8} "

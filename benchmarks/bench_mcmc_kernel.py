@@ -39,14 +39,16 @@ def data(points: int, dim: int, seed: int = 0) -> tuple[torch.Tensor, NormalInve
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import at_least, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--points", type=positive_int, default=50)
-    parser.add_argument("--dim", type=positive_int, default=10)
+    parser.add_argument("--points", type=at_least(2), default=50)
+    parser.add_argument("--dim", type=at_least(2), default=10)
     parser.add_argument("--sweeps", type=positive_int, default=20)
     parser.add_argument("--repeats", type=positive_int, default=7)
     args = parser.parse_args()
+    if args.points <= args.dim:  # the prior's covariance is the data's
+        parser.error(f"--points {args.points}: N must exceed --dim {args.dim}")
     torch.set_num_threads(1)
     y, prior = data(args.points, args.dim)
     sampler = DPSampler(prior, alpha=1.0, m=10, reward_weighted=True, update_prior=True)

@@ -75,16 +75,18 @@ def child(case: str, n: int, dim: int, m: int, threads: int) -> dict[str, float]
 
 
 def main() -> None:
-    from argtypes import positive_int
+    from argtypes import at_least, positive_int
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--n", type=positive_int, default=10_000)
+    parser.add_argument("--n", type=at_least(2), default=10_000)
     parser.add_argument("--dim", type=positive_int, default=51, help="p, the dimension of y")
     parser.add_argument("--m", type=positive_int, default=10, help="auxiliary components")
     parser.add_argument("--threads", type=positive_int, default=1)
     parser.add_argument("--skip-unchunked", action="store_true")
     parser.add_argument("--child", choices=CASES, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.n <= args.dim:  # the prior's mean covariance is the data's
+        parser.error(f"--n {args.n}: N must exceed p = {args.dim} (--dim)")
     if args.child:
         print(json.dumps(child(args.child, args.n, args.dim, args.m, args.threads)))
         return

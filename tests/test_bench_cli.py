@@ -294,3 +294,34 @@ def test_figure1_grid_step_above_the_budget_is_refused_before_the_runs(
         reproduce_figure1.main()
     assert exit_.value.code == 2
     assert "--grid-step 501 leaves no grid point in 500 trials" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("script", "argv", "said"),
+    [
+        ("bench_gibbs", ["--sizes", "9", "--dims", "2"], "--sizes 9: N must be at least 10"),
+        ("bench_gibbs", ["--sizes", "10", "--dims", "10"], "--sizes 10: N must be at least 11"),
+        ("bench_mcmc_kernel", ["--points", "2", "--dim", "2"], "--points 2: N must exceed"),
+        ("bench_mcmc_kernel", ["--dim", "1"], "argument --dim: must be an integer >= 2"),
+        ("bench_memory", ["--n", "2", "--dim", "2"], "--n 2: N must exceed p = 2"),
+        ("bench_dispatch", ["--dims", "1"], "argument --dims: must be an integer >= 2"),
+    ],
+)
+def test_sizes_the_data_cannot_have_are_argparse_errors(script, argv, said, monkeypatch, capsys):
+    # A covariance of N <= D points (or of one coordinate) failed deep in the prior's checks;
+    # bench_dispatch's 8 optima do not fit 2 apart on a 1-D box.
+    module = importlib.import_module(script)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 2
+    assert said in capsys.readouterr().err
+
+
+def test_gibbs_prior_of_one_dimensional_data():
+    # torch.cov of one coordinate is a scalar: "mean_covariance must have shape [1, 1]".
+    import bench_gibbs
+    import torch
+
+    y, _ = bench_gibbs.make_data(20, 1)
+    assert bench_gibbs.prior_for(y).mean_covariance.shape == torch.Size([1, 1])
