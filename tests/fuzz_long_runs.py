@@ -255,7 +255,7 @@ def run_case(seed: int, budget: int | None = None, optimizer: str = "dipole") ->
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs=2, default=[0, 20], metavar=("FIRST", "END"))
     parser.add_argument("--budget", type=int, default=None, help="trials a case (default: drawn)")
     parser.add_argument(
