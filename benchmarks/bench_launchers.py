@@ -65,7 +65,10 @@ def launcher(seeds: int, workers: int) -> tuple[float, np.ndarray]:
             f"seed=range(0,{seeds})",
         ]
         start = time.perf_counter()
-        subprocess.run(command, cwd=tmp, check=True, capture_output=True, text=True)
+        done = subprocess.run(command, cwd=tmp, capture_output=True, text=True)
+        if done.returncode != 0:  # (check=True showed the command line, not train.py's error)
+            tail = (done.stdout + done.stderr)[-3000:]
+            raise SystemExit(f"train.py -m failed (exit status {done.returncode}):\n{tail}")
         wall = time.perf_counter() - start
         runs = sorted(Path(tmp, "multirun").glob("*/results.json"))
         if len(runs) != seeds:

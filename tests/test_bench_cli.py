@@ -325,3 +325,17 @@ def test_gibbs_prior_of_one_dimensional_data():
 
     y, _ = bench_gibbs.make_data(20, 1)
     assert bench_gibbs.prior_for(y).mean_covariance.shape == torch.Size([1, 1])
+
+
+def test_a_failed_launcher_sweep_shows_train_pys_error(monkeypatch):
+    # check=True with captured output showed a CalledProcessError naming the command only.
+    import subprocess
+
+    import bench_launchers
+
+    def failed(command, **kwargs):
+        return subprocess.CompletedProcess(command, 1, "", "Error: hydra/launcher=joblib ...")
+
+    monkeypatch.setattr(bench_launchers.subprocess, "run", failed)
+    with pytest.raises(SystemExit, match=r"(?s)exit status 1.*hydra/launcher=joblib"):
+        bench_launchers.launcher(1, 1)
