@@ -105,12 +105,14 @@ def test_single_blob_stays_one_cluster(d):
     assert int(state.counts.max()) >= 0.95 * 200
 
 
-def test_eq6_reward_weights_scale_label_probabilities():
+@pytest.mark.parametrize("auxiliary", ["fresh", "reuse"])
+def test_eq6_reward_weights_scale_label_probabilities(auxiliary):
     """A point equally likely under two equal-sized components goes to each with odds r_A/r_B.
 
     y = [θ, w]: components A and B sit at θ = ∓2 with mean reward weights 0.8 and 0.2; the
     test point sits at θ = 0 with w = 0.5, where both densities are equal by symmetry. Eq. 6
-    gives P(A) = 0.8 / (0.8 + 0.2) = 0.8; eq. 5 (unweighted) gives 0.5.
+    gives P(A) = 0.8 / (0.8 + 0.2) = 0.8; eq. 5 (unweighted) gives 0.5. With either label
+    pass (Algorithm 8's fresh auxiliary draws, or Favaro & Teh's re-used ones).
     """
     n = 10
     centres = torch.tensor([[-2.0, 0.0, 0.8], [2.0, 0.0, 0.2]], dtype=F64)
@@ -124,7 +126,9 @@ def test_eq6_reward_weights_scale_label_probabilities():
         hits = 0
         g = torch.Generator().manual_seed(0)
         for _ in range(200):
-            out = DPSampler(prior, alpha=1e-12, m=1, reward_weighted=weighted).sweep(y, state, g)
+            out = DPSampler(
+                prior, alpha=1e-12, m=1, reward_weighted=weighted, auxiliary=auxiliary
+            ).sweep(y, state, g)
             hits += int(out.labels[-1] == out.labels[0])
         return hits / 200
 
@@ -454,6 +458,53 @@ def test_reuse_pool_grows_in_blocks_for_large_data(monkeypatch, prior_draw_sizes
     assert sizes[0] == 10 + 1 and len(sizes) > 15 and set(sizes[1:]) <= {1, 11}
     assert int((state.counts >= 5).sum()) == 3
     assert adjusted_rand_score(true.numpy(), state.labels.numpy()) >= 0.9  # (+ stray singletons)
+
+
+def test_reuse_pass_is_the_same_whatever_the_pool_block(monkeypatch):
+    """The pool's refills drawn one at a time (``POOL_BLOCK`` = 1) or all ahead give the same
+    pass: a refill is scored, with its own reward weight, at every point after the one that
+    took its slot; and a slot taken is refilled, so no two components share parameters.
+
+    m = 1 and a starting component far from the data: most points open a component, so the
+    one slot is taken again and again (24 components here). Scoring a refill from the point
+    after next, or without its log r_c, changes the blocked pass only; leaving the slot
+    unrefilled opens components on the same parameters.
+    """
+    g = torch.Generator().manual_seed(4)
+    n = 60
+    y = 0.3 * torch.randn(n, 2, generator=g, dtype=F64)
+    prior = clustering_prior(y)
+    far = torch.full((1, 2), 50.0, dtype=F64)
+    state = DPMixtureState(
+        torch.zeros(n, dtype=torch.long), far, torch.eye(2, dtype=F64)[None], prior
+    )
+    tril = torch.linalg.cholesky(state.covariances)
+    pool_means, pool_covs = prior.sample(2 * n, g)
+    pool_tril = torch.linalg.cholesky(pool_covs)
+    u, slot_u = torch.rand(n, generator=g, dtype=F64), torch.rand(n, generator=g, dtype=F64)
+
+    def log_rewards(means):
+        return -0.5 * (means[:, 0] - y[0, 0]).abs()
+
+    def run(block):
+        monkeypatch.setattr(dp_reuse, "POOL_BLOCK", block)
+        served = 0
+
+        def draw(count):  # H's draws in a fixed order, whatever the block
+            nonlocal served
+            served += count
+            return tuple(x[served - count : served] for x in (pool_means, pool_covs, pool_tril))
+
+        return dp_reuse.label_pass_reuse(
+            y, state, tril, log_rewards, draw, u, slot_u, math.log(20.0), 1
+        )
+
+    labels, means, _, _, counts = run(1)
+    labels_all, means_all, _, _, _ = run(256)
+    assert torch.equal(labels, labels_all) and torch.equal(means, means_all)
+    occupied = means[counts > 0]
+    assert occupied.shape[0] >= 10
+    assert torch.unique(occupied, dim=0).shape[0] == occupied.shape[0]
 
 
 @pytest.mark.parametrize(
