@@ -251,6 +251,52 @@ def test_eq6_r_c_is_relative_to_the_reward_scale():
         torch.testing.assert_close(log_r_s - log_r, torch.full_like(log_r, math.log(factor)))
 
 
+def two_reward_components(sizes=(1, 9)):
+    """A state over y = [θ, w]: two overlapping components whose w rises with θ (mean
+    rewards 0.3 and 0.7), of ``sizes`` points, and data weights w spanning [0.1, 0.9]."""
+    means = torch.tensor([[-1.0, 0.3], [1.0, 0.7]], dtype=F64)
+    covariances = torch.tensor([[1.0, 0.3], [0.3, 0.2]], dtype=F64).expand(2, 2, 2).clone()
+    labels = torch.arange(2).repeat_interleave(torch.tensor(sizes))
+    w = torch.linspace(0.1, 0.9, labels.numel(), dtype=F64)
+    prior = NormalInverseWishartPrior.from_exploration(means.mean(0), covariances[0], df=5.0)
+    return DPMixtureState(labels, means, covariances, prior), w
+
+
+def test_eq6_component_rewards_weight_the_components_by_their_sizes():
+    """r_c in a sweep is the regression of the starting mixture with weights ∝ the
+    component sizes (as ``state.mixture()``), clamped to the data's reward range. Between
+    components of 1 and 9 points, weighting them equally moves E[w | θ] by up to 0.1."""
+    state, w = two_reward_components()
+    theta = torch.linspace(-1.5, 1.5, 7, dtype=F64)[:, None]
+    queries = torch.cat((theta, torch.zeros_like(theta)), 1)  # (the w part is not read)
+    expected = state.mixture().condition([0], theta).mean[..., 0].clamp(0.1, 0.9).log()
+    log_r = dp_reward_weights.ComponentRewards(state, w)(queries)
+    torch.testing.assert_close(log_r, expected)
+
+
+def test_eq6_clamp_follows_the_data_weights_and_floor_given_at_each_call():
+    """``reward_weights``' clamp: to the data's reward range [min w, max w] (not the
+    components' mean rewards, 0.3 to 0.7 here), recomputed when one prepared regression is
+    queried with weights changed in place or with another ``floor`` (the bounds are
+    memoised); a floor above max w is a floor still."""
+    state, w = two_reward_components()
+    mixture = state.mixture()
+    regression = dp_reward_weights.RewardRegression(
+        mixture.weights, mixture.means, mixture.covariances
+    )
+    far = torch.tensor([[-50.0, 0.0], [50.0, 0.0]], dtype=F64)  # extrapolated to ∓7.5
+    weights = w.clone()
+    r = reward_weights(regression, far, weights=weights).exp()
+    torch.testing.assert_close(r, torch.tensor([0.1, 0.9], dtype=F64))
+    weights.mul_(0.5)
+    r = reward_weights(regression, far, weights=weights).exp()
+    torch.testing.assert_close(r, torch.tensor([0.05, 0.45], dtype=F64))
+    r = reward_weights(regression, far, weights=weights, floor=0.2).exp()
+    torch.testing.assert_close(r, torch.tensor([0.2, 0.45], dtype=F64))
+    r = reward_weights(regression, far, weights=weights, floor=2.0).exp()
+    torch.testing.assert_close(r, torch.tensor([2.0, 2.0], dtype=F64))
+
+
 def three_reward_clusters(generator, n=30):
     """y = [θ, w]: three overlapping clusters in θ with mean weights 0.2, 0.5 and 0.9."""
     true = torch.arange(3).repeat_interleave(n // 3)
