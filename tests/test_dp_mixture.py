@@ -414,6 +414,35 @@ def test_sync_free_label_pass_makes_the_numpy_pass_draws(weighted, monkeypatch):
     torch.testing.assert_close(a.covariances, b.covariances)
 
 
+def test_numpy_label_pass_grows_its_slots_as_the_sync_free_pass_does(monkeypatch):
+    """A pass that opens more components than its slot arrays hold (8 from one starting
+    component) grows them keeping every score and count: the numpy pass still makes the
+    sync-free pass's draws. 16 clusters 20 apart, one starting component away from them all:
+    the first sweep opens a component for each cluster at least."""
+    g = torch.Generator().manual_seed(0)
+    grid = torch.cartesian_prod(torch.arange(4.0), torch.arange(4.0)).to(F64)
+    true = torch.arange(16).repeat_interleave(4)
+    y = 20.0 * grid[true] + torch.randn(64, 2, generator=g, dtype=F64)
+    prior = clustering_prior(y)
+    far = torch.full((1, 2), 200.0, dtype=F64)  # a start no point stays with
+    state = DPMixtureState(
+        torch.zeros(64, dtype=torch.long), far, torch.eye(2, dtype=F64)[None], prior
+    )
+
+    def sweeps(label_pass):
+        monkeypatch.setattr(neal8, "label_pass_numpy", label_pass)
+        g = torch.Generator().manual_seed(1)
+        sampler = DPSampler(prior, alpha=5.0, update_prior=False)
+        first = sampler.sweep(y, state, g)
+        return first, sampler.sweep(y, first, g)
+
+    numpy_pass = neal8.label_pass_numpy
+    (first, a), (_, b) = sweeps(numpy_pass), sweeps(neal8.label_pass_sync_free)
+    assert first.num_components > 8
+    assert torch.equal(a.labels, b.labels)
+    torch.testing.assert_close(a.means, b.means)
+
+
 @pytest.fixture
 def prior_draw_sizes(monkeypatch):
     """The sizes of H's draws (``NormalInverseWishartPrior.sample``) made after the
