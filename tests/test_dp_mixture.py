@@ -624,6 +624,20 @@ def test_fewer_points_than_dimensions_without_regularization_start_from_h(method
     assert torch.isfinite(state.prior.mean_covariance).all()
 
 
+def test_a_single_point_starts_from_h_whatever_the_regularisation():
+    """One point has no covariance: Algorithm 1's start takes H's expected covariance (plus
+    R), not R alone, which the point's zero scatter plus a regularisation factorises into."""
+    y = torch.tensor([[0.5, -1.0]], dtype=F64)
+    prior = NormalInverseWishartPrior.from_exploration(
+        torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64), regularization=1e-3
+    )
+    start = DPMixtureState.single_component(y, prior)
+    torch.testing.assert_close(
+        start.covariances[0], prior.expected_covariance + prior.regularization
+    )
+    torch.testing.assert_close(start.means[0], y[0])
+
+
 def test_a_nearly_singular_prior_is_refused_and_one_of_any_units_is_not():
     d = 4
     direction = torch.ones(d, 1, dtype=F64)
