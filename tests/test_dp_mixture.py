@@ -53,6 +53,21 @@ def test_inverse_wishart_convention_moment():
     torch.testing.assert_close(prior.expected_covariance, psi)
 
 
+def test_prior_from_exploration_defaults():
+    """H from an exploration N(m, C): μ0 = m, Σ0 = C, ν0 = D + 3 by default (the least
+    integer with a finite prior variance), E[Σ] = C, and R = r · diag(C) (the diagonal
+    only: a correlated C gives no off-diagonal regularisation)."""
+    d = 3
+    cov = torch.tensor([[2.0, 0.8, 0.0], [0.8, 1.0, -0.3], [0.0, -0.3, 0.5]], dtype=F64)
+    mean = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    prior = NormalInverseWishartPrior.from_exploration(mean, cov, regularization=0.01)
+    assert prior.df == d + 3
+    torch.testing.assert_close(prior.mean_loc, mean)
+    torch.testing.assert_close(prior.mean_covariance, cov)
+    torch.testing.assert_close(prior.expected_covariance, cov)
+    torch.testing.assert_close(prior.regularization, 0.01 * torch.diag(cov.diagonal()))
+
+
 # Seeds moved when the Σ step became exact (Metropolis-Hastings, 2d8cd2e) and the chains
 # changed: with or without that step, about 1 in 20 seeded recovery chains and 1 in 4
 # Algorithm-1 chains end in a transient state where a tail cluster has split off (measured
