@@ -142,6 +142,40 @@ def test_a_reward_above_a_fixed_range_wider_than_the_largest_float_is_refused():
         scale.validate(torch.tensor([1.7e308], dtype=F64))
 
 
+def test_reward_scale_maps_inverts_and_bounds_returns():
+    """The reward map's pieces that tell() and ``Dipole.mixture`` use: w = (r − low) /
+    (high − low) floored, its inverse and slope (a mixture in return units, fixed and
+    adaptive ranges), the slack of 1e-9 of the range at its ends, the floor a fixed range
+    is built with, a zero return refused as a positive weight, and a first positive batch
+    judged by its largest weight."""
+    scale = RewardScale(-10.0, 30.0, floor=0.01)
+    weights = scale(torch.tensor([-10.0, 10.0, 30.0], dtype=F64))
+    torch.testing.assert_close(weights, torch.tensor([0.01, 0.5, 1.0], dtype=F64))
+    torch.testing.assert_close(
+        scale.inverse(torch.tensor([0.25], dtype=F64)), torch.tensor([0.0], dtype=F64)
+    )
+    assert scale.slope() == 40.0
+    reference = torch.tensor([2.0, 6.0, 3.0], dtype=F64)
+    adaptive = RewardScale()
+    torch.testing.assert_close(
+        adaptive.inverse(torch.tensor([0.5], dtype=F64), reference), torch.tensor([4.0], dtype=F64)
+    )
+    assert adaptive.slope(reference) == 4.0
+    scale.validate(torch.tensor([30.0 + 2e-8, -10.0 - 2e-8], dtype=F64))  # within the slack
+    with pytest.raises(ValueError, match="outside reward_range"):
+        scale.validate(torch.tensor([30.0 + 1e-6], dtype=F64))
+    assert (
+        Power([0.0, 0.0], 1.0, reward_range=(-10.0, 30.0), reward_floor=0.05).reward_scale.floor
+        == 0.05
+    )
+    with pytest.raises(ValueError, match=r"floor must lie in \(0, 1\)"):
+        RewardScale(floor=1.0)
+    positive = RewardScale(positive=True)
+    with pytest.raises(ValueError, match="must be positive"):
+        positive.validate(torch.tensor([0.0, 1.0], dtype=F64))
+    positive.validate(torch.tensor([1e-200, 1.0], dtype=F64), first=True)
+
+
 def test_a_first_batch_of_positive_weights_too_small_to_square_is_refused_naming_the_limit():
     # The paper's variant weighs by the returns as they are; the DP mixture's variances are
     # their squares, which underflow to 0 below ~1e-154.
