@@ -274,6 +274,57 @@ def test_the_returns_range_resumes_and_forgets():
     assert returns.lowest == returns.highest == []
 
 
+class KeptReturns:
+    """The archive's per-policy min and max of the kept returns, as ``kept_spreads`` reads
+    them."""
+
+    def __init__(self, low, high):
+        self.low, self.high = torch.tensor(low, dtype=F64), torch.tensor(high, dtype=F64)
+
+    def per_policy(self, reduction, num_policies):
+        return self.high if reduction == "amax" else self.low
+
+
+def test_kept_spreads_count_a_crash_left_out_below_as_the_ranges_low_end():
+    """A crash left out below the range (its low end 0): a policy holding it among returns
+    in the range spreads to 0.6, not a million ranges; one whose kept returns all lie below
+    the range is judged on its own returns (6 apart), not clamped flat to the range."""
+    bulk = torch.linspace(0.0, 1.0, 99, dtype=F64)
+    crash = told_range(bulk[:50], [-1e6], bulk[50:])
+    assert crash.leaves_out and not crash.outliers_above
+    archive = KeptReturns([-1e6, -1e6 - 10.0], [0.6, -1e6 - 4.0])
+    spreads = crash.kept_spreads(archive, 2)
+    torch.testing.assert_close(spreads, torch.tensor([0.6, 6.0], dtype=F64))
+
+
+def test_the_range_leaves_out_more_outliers_as_more_returns_are_told():
+    """150 crashes among 2700 returns in [0, 1] are more than 5 % and stay in the range;
+    200 returns more, all in the middle (neither among the lowest nor the highest kept),
+    make them 5 % of what was told: they are left out then, not at the next extreme
+    return."""
+    crashes = -1e6 - torch.arange(150, dtype=F64)
+    returns = told_range(crashes, torch.linspace(0.0, 1.0, 2700, dtype=F64))
+    assert returns.low == -1e6 - 149
+    returns.observe(torch.full((200,), 0.5, dtype=F64))
+    assert returns.low == 0.0
+
+
+def test_a_range_resumed_from_an_old_checkpoint_judges_its_high_end_again_once_it_forgets():
+    """A checkpoint without the highest returns keeps its high end (nothing above left
+    out); once the world changes (``forget``) the range is measured afresh, a glitch above
+    left out again."""
+    from dipole_torch.mechanisms.return_range import ReturnRange
+
+    bulk = torch.linspace(0.0, 1.0, 99, dtype=F64)
+    state = told_range(bulk).state_dict()
+    del state["highest_returns"]
+    returns = ReturnRange()
+    returns.load_state_dict(state)
+    returns.forget()
+    returns.observe(torch.cat((bulk[:50], torch.tensor([1e6], dtype=F64), bulk[50:])))
+    assert (returns.low, returns.high, returns.outliers_above) == (0.0, 1.0, True)
+
+
 def vincent(theta):
     """``[B]`` Vincent's function on [0.25, 10]² (36 optima of value 1)."""
     return torch.sin(10.0 * torch.log(theta)).mean(-1)
