@@ -349,6 +349,9 @@ def test_draw_categorical_never_picks_a_zero_probability_slot():
     for total in (1.0, 1.0 + 2.0**-52, 3.0):
         logits = torch.tensor([0.0, 0.0, -inf, -inf], dtype=F64) + math.log(total / 2)
         assert int(draw_categorical(logits, u)) == 1
+    # In float32 the largest float64 uniform below 1 rounds to 1 itself: u·total = total.
+    logits = torch.tensor([0.0, 0.0, -inf, -inf], dtype=torch.float32)
+    assert int(draw_categorical(logits, u)) == 1
     batch = draw_categorical(
         torch.tensor([[-inf, 0.0], [0.0, -inf]]), torch.tensor([0.0, 0.9999999])
     )

@@ -127,6 +127,15 @@ def test_numpy_categorical_draw_matches_the_torch_one():
     assert draw_categorical_numpy(np.array([0.0, 0.0, -inf, -inf]), 1.0 - 2.0**-53) == 1
 
 
+def test_numpy_categorical_draw_refuses_a_row_without_a_possible_label():
+    """Every logit −inf (or NaN): a FloatingPointError that says so, not a label drawn from
+    a CDF of NaN."""
+    inf = math.inf
+    for row in ([-inf, -inf, -inf], [math.nan, -inf]):
+        with pytest.raises(FloatingPointError, match="every label has probability 0"):
+            draw_categorical_numpy(np.array(row), 0.5)
+
+
 @pytest.mark.parametrize(
     "shapes",
     [((2,), (3, 1), (1, 1, 1)), ((), (4,)), ((5, 1, 3), (4, 1)), ((0,), (1,)), ((2, 3),)],
