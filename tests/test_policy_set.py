@@ -65,6 +65,51 @@ def test_a_state_of_another_shape_is_refused_naming_the_key():
     assert other.paths.abs().sum() == 0 and other.ids.tolist() == [0, 1, 2]
 
 
+def test_a_checkpoint_without_the_next_id_numbers_new_policies_after_its_own():
+    """A state from before ``next_policy_id`` was saved: new policies are numbered from its
+    largest id + 1, never again one of its policies' ids (a policy's id is its own)."""
+    policies = three_policies()
+    policies.index(torch.tensor([2, 0]))  # ids 2, 0
+    state = policies.state_dict()
+    del state["next_policy_id"]
+    other = three_policies()
+    other.load_state_dict(state, torch.device("cpu"))
+    other.extend(torch.zeros(1, 2, dtype=F64), torch.eye(2, dtype=F64)[None])
+    assert other.ids.tolist() == [2, 0, 3]
+
+
+def test_a_core_name_is_no_field_and_state_dicts_are_copies_unless_asked():
+    """``register`` refuses the core tensors' names (a field "means" would reset the policy
+    means to its default); ``state_dict()`` copies every tensor, ``copy=False`` gives the
+    tensors themselves."""
+    policies = three_policies()
+    for name in PolicySet.CORE:
+        with pytest.raises(ValueError, match=f"{name!r} exists already"):
+            policies.register(name, PolicyField())
+    assert policies.means.tolist() == [[0.0, 1.0], [2.0, 3.0], [4.0, 5.0]]
+    state, shared = policies.state_dict(), policies.state_dict(copy=False)
+    policies.means.add_(1.0)
+    policies.success.fill_(0.9)
+    assert state["policy_means"][0].tolist() == [0.0, 1.0] and state["success"][0] == 0.5
+    assert shared["policy_means"] is policies.means and shared["success"] is policies.success
+
+
+def test_exploration_factors_stand_in_the_identity_where_a_covariance_does_not_factorise():
+    """``(L, ok)``: each covariance's Cholesky factor, or the identity (not NaN) where it
+    is not positive definite, with ok False there."""
+    covariances = torch.stack(
+        (
+            torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=F64),
+            torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=F64),  # indefinite
+        )
+    )
+    policies = PolicySet(torch.zeros(2, 2, dtype=F64), covariances)
+    factors, ok = policies.exploration_factors()
+    assert ok.tolist() == [True, False]
+    torch.testing.assert_close(factors[0], torch.linalg.cholesky(covariances[0]))
+    assert torch.equal(factors[1], torch.eye(2, dtype=F64))
+
+
 def test_the_archive_keeps_owners_with_their_samples():
     archive = SampleArchive(1, torch.device("cpu"))
     archive.append(
