@@ -102,6 +102,27 @@ def test_bad_arguments_are_rejected():
     kernel.initial_params = {"labels": torch.zeros(5, dtype=torch.long)}
     with pytest.raises(ValueError, match="initial labels must have shape \\[24\\]"):
         kernel.setup(0, y)
+    for labels in (torch.tensor([0.0, 0.5, 1.0]), torch.zeros(2, 12, dtype=torch.long)):
+        with pytest.raises(ValueError, match="initial labels must be \\[N\\] integers"):
+            kernel.initial_params = {"labels": labels}
+    fresh = DPMixtureKernel(DPSampler(prior))
+    with pytest.raises(ValueError, match="at least one point"):
+        fresh.setup(0, y[:0])
+    bad = y.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="y contains non-finite"):
+        fresh.setup(0, bad)
+
+
+def test_a_kernel_set_up_again_counts_its_sweeps_from_zero():
+    y, prior = two_groups()
+    kernel = DPMixtureKernel(DPSampler(prior, m=3), generator=torch.Generator().manual_seed(0))
+    kernel.setup(0, y)
+    kernel.sample({})
+    kernel.sample({})
+    assert kernel.diagnostics() == {"num_sweeps": 2}
+    kernel.setup(0, y)
+    assert kernel.diagnostics() == {"num_sweeps": 0}
 
 
 @pytest.mark.parametrize("update_prior", [False, True])
