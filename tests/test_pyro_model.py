@@ -52,6 +52,10 @@ def test_inverse_wishart_density_and_mean():
     assert dist.expand((3,)).log_prob(draws[:3]).shape == (3,)
     with pytest.raises(ValueError, match="df must exceed"):
         InverseWishart(0.5, scale)
+    # ν > D − 1 is all a Wishart needs (its mean is finite beyond D + 1 only).
+    assert torch.isfinite(InverseWishart(1.5, scale).log_prob(draws[:2])).all()
+    with pytest.raises(ValueError, match="df must exceed D - 1 = 1"):
+        InverseWishart(1.0, scale)
 
 
 def test_crp_labels_sum_to_one_over_all_partitions():
@@ -238,6 +242,25 @@ def test_log_joint_refuses_bad_y_and_state():
         dp_log_joint(y.tolist(), state, 1.0)
     with pytest.raises(TypeError, match="state must be a DPMixtureState"):
         dp_log_joint(y, (state.labels, state.means, state.covariances), 1.0)
+    # A component without a point: the model has none.
+    empty = DPMixtureState(
+        state.labels, torch.cat([state.means, state.means[:1]]),
+        torch.cat([state.covariances, state.covariances[:1]]), state.prior,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="state has empty components"):
+        dp_log_joint(y, empty, 1.0)
+    # Σ_k = covariances_k − R not positive definite (here below R): density 0, not an error.
+    below = DPMixtureState(
+        state.labels, state.means, 0.5 * state.prior.regularization.expand_as(state.covariances),
+        state.prior,
+    )  # fmt: skip
+    assert dp_log_joint(y, below, 1.0) == -math.inf
+
+
+def test_model_refuses_data_of_another_number_of_points():
+    y = torch.zeros(5, 2, dtype=F64)
+    with pytest.raises(ValueError, match="num_points=3 but data has 5 rows"):
+        dp_mixture_model(prior_2d(), 1.0, 3, data=y)
 
 
 # --------------------------------------------------------------------------- Geweke test
