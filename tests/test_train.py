@@ -110,6 +110,52 @@ def test_hparams_hold_the_config_and_the_final_metrics(finished_run):
     assert events.Scalars("search/policies")[-1].value == len(results["policies"])
 
 
+class LoggedSearch:
+    """What ``Board.log_iteration`` reads of an optimizer: three policies, the middle one
+    retired, their latest returns 1, 4 and −2, the best return so far 7.5 (told earlier)."""
+
+    trials, num_policies, clusterings_skipped = 30, 3, 2
+    last_rewards = torch.tensor([1.0, 4.0, -2.0], dtype=torch.float64)
+    active = torch.tensor([True, False, True])
+
+    def relative_std(self):
+        return torch.tensor([1e-2, 1.0, 1e-4], dtype=torch.float64)
+
+    def best(self):
+        return torch.zeros(2, dtype=torch.float64), 7.5
+
+
+def test_the_board_logs_each_iterations_scalars(tmp_path):
+    """reward/best and reward/mean of the latest returns, reward/best_so_far from best(),
+    search/log10_exploration_std the log10 of the active policies' mean relative std (all
+    policies' once none is active), the returns' histogram, the clusterings skipped."""
+    from dipole_torch.training.board import Board
+
+    board = Board(tmp_path, OmegaConf.create({"seed": 0}))
+    search = LoggedSearch()
+    row = board.log_iteration(search)
+    assert row == {
+        "trials": 30, "best": 4.0, "mean": 1.0, "best_so_far": 7.5, "num_policies": 3,
+        "exploration_std": pytest.approx(0.00505),
+    }  # fmt: skip
+    search.trials, search.active = 40, torch.zeros(3, dtype=torch.bool)
+    assert board.log_iteration(search)["exploration_std"] == pytest.approx(1.0101 / 3)
+    board.close()
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+
+    def values(tag):
+        return [(event.step, event.value) for event in events.Scalars(tag)]
+
+    assert values("reward/best") == [(30, 4.0), (40, 4.0)]
+    assert values("reward/mean") == [(30, 1.0), (40, 1.0)]
+    assert values("reward/best_so_far") == [(30, 7.5), (40, 7.5)]
+    assert values("search/clusterings_skipped") == [(30, 2.0), (40, 2.0)]
+    logged = [value for _, value in values("search/log10_exploration_std")]
+    assert logged == pytest.approx([math.log10(0.00505), math.log10(1.0101 / 3)], rel=1e-6)
+    assert "search/rewards" in events.Tags()["histograms"]
+
+
 def test_train_log_holds_the_log_lines_and_the_summary(finished_run):
     results = json.loads((finished_run / "results.json").read_text())
     log = (finished_run / "train.log").read_text()
