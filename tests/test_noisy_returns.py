@@ -299,6 +299,17 @@ def test_on_noisy_returns_the_policies_summary_averages_as_many_rollouts():
         # One rollout: the task's fixed default episode; several: each its own episode.
         assert task.generators == ({None} if calls == 1 else {episodes})
 
+    class Numbered(Task):
+        """Returns the number of the call: rollouts 1 … 4 give 1 … 4."""
+
+        def evaluate(self, theta, generator=None):
+            super().evaluate(theta, generator)
+            return torch.full((theta.shape[0],), float(self.calls), dtype=F64)
+
+    # The return of each mean is the rollouts' mean (of the noisy run's 4: 2.5).
+    summary = policy_summary(Numbered(cone), opt, episodes)
+    assert {policy["return_of_mean"] for policy in summary} == {2.5}
+
 
 @pytest.mark.parametrize("build", [make, make_power], ids=["Dipole", "Power"])
 def test_a_long_noisy_run_that_goes_well_converges_and_ends_cleanly(build):

@@ -292,6 +292,9 @@ def test_the_result_names_each_row_by_the_id_train_py_gives_it():
         assert f"means[{k}] = " in str(result) and f"policy {policy_id})" in str(result)
         mean = torch.tensor(by_id[policy_id]["mean"], dtype=result.means.dtype)
         assert torch.equal(mean, result.means[k])  # the same row (in the task's dtype)
+        covariance = torch.tensor(by_id[policy_id]["covariance"], dtype=F64)
+        assert torch.equal(covariance, opt.policy_covariances[k])
+        assert by_id[policy_id]["weight"] == float(opt.policies.weights[k])
 
 
 def test_powers_result_is_one_policy_with_id_zero():

@@ -643,6 +643,7 @@ def test_the_tasks_figures_of_a_policy_set_are_numbers_or_a_clear_error():
         ({"optima": torch.ones(2)}, TypeError, "'optima' must be a number, got tensor"),
         ({"optima": math.nan}, ValueError, "'optima' must be finite, got nan"),
         ({3: 1.0}, TypeError, "a name must be a non-empty string, got 3"),
+        ({"": 1.0}, TypeError, "a name must be a non-empty string, got ''"),
         ([1.0], TypeError, "must return a dict of names to numbers, got [1.0]"),
     ]:
         with pytest.raises(error) as raised:
@@ -651,6 +652,23 @@ def test_the_tasks_figures_of_a_policy_set_are_numbers_or_a_clear_error():
     message = "ToyWithFigures.describe_policy_set must return a str, got 3"
     with pytest.raises(TypeError, match=message):
         run_results.check_task_hooks(ToyWithFigures({}, line=3))
+
+
+def test_the_policy_set_summary_and_results_json(tmp_path):
+    """The task's scalars are kept without a line (and the line without scalars); a task
+    with neither adds nothing. results.json is strict JSON: a NaN is refused, not written."""
+    from dipole_torch import Power
+
+    opt = Power(torch.zeros(2), 1.0)
+    summary = run_results.policy_set_summary(ToyWithFigures({"optima": 3}), opt)
+    assert summary == {"policy_set": {"scalars": {"optima": 3.0}, "description": ""}}
+    summary = run_results.policy_set_summary(ToyWithFigures({}, "two hills"), opt)
+    assert summary == {"policy_set": {"scalars": {}, "description": "two hills"}}
+    assert run_results.policy_set_summary(ToyWithFigures({}), opt) == {}
+    run_results.write_results(tmp_path, {"best_reward": 1.0}, opt)
+    assert json.loads((tmp_path / "results.json").read_text()) == {"best_reward": 1.0}
+    with pytest.raises(ValueError, match="not JSON compliant"):
+        run_results.write_results(tmp_path, {"best_reward": math.nan}, opt)
 
 
 def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_path, monkeypatch):
