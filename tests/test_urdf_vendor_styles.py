@@ -306,6 +306,41 @@ def test_a_movable_joint_without_axis_turns_about_x(tmp_path):
     torch.testing.assert_close(tip, torch.tensor([0.0, 0.0, 0.5], dtype=F64), atol=1e-6, rtol=0)
 
 
+def hinge_arm(tmp_path, tip_link: str) -> Path:
+    """A hinge about z at the base, the tip 0.5 along the arm's x, the tip's ``<link>``
+    element as given."""
+    path = tmp_path / "hinge.urdf"
+    path.write_text(
+        f'<robot name="hinge"><link name="base"/><link name="arm"/>{tip_link}'
+        '<joint name="hinge" type="revolute"><parent link="base"/><child link="arm"/>'
+        '<axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>'
+        '<joint name="tool" type="fixed"><parent link="arm"/><child link="tip"/>'
+        '<origin xyz="0.5 0 0"/></joint></robot>'
+    )
+    return path
+
+
+def test_a_links_origin_moves_its_frame_as_pytorch_kinematics_reads_it(tmp_path):
+    """The copy pytorch-kinematics loads keeps a link's ``<origin>`` (it applies it): the
+    tip's origin 0.1 along x and 0.25 along z moves the tip there, in the arm's frame."""
+    quarter = torch.tensor([[math.pi / 2]], dtype=F64)
+    plain = ArmKinematics(hinge_arm(tmp_path, '<link name="tip"/>'), "tip", dtype=F64)
+    torch.testing.assert_close(
+        plain.forward_kinematics(quarter)[0], torch.tensor([0.0, 0.5, 0.0], dtype=F64)
+    )
+    moved = hinge_arm(tmp_path, '<link name="tip"><origin xyz="0.1 0 0.25"/></link>')
+    tip = ArmKinematics(moved, "tip", dtype=F64).forward_kinematics(quarter)[0]
+    torch.testing.assert_close(tip, torch.tensor([0.0, 0.6, 0.25], dtype=F64))
+
+
+def test_equal_limits_pin_a_joint():
+    """joint_lower = joint_upper is a joint held at one value, not crossed limits."""
+    arm = ArmKinematics(
+        URDF_DIR / "xarm6_style.urdf", "link_eef", joint_lower=[0.3] * 6, joint_upper=[0.3] * 6
+    )
+    assert arm.clamp_to_limits(torch.full((1, 6), 1.0)).tolist() == [[pytest.approx(0.3)] * 6]
+
+
 def test_an_unexpanded_xacro_file_says_so(tmp_path):
     path = tmp_path / "arm.urdf.xacro"
     path.write_text(
