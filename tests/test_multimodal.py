@@ -72,6 +72,22 @@ def test_the_optima_the_policies_find_together():
     assert lines[0] == f"optimum 2, return {math.exp(-0.005):.4g}"
 
 
+def test_the_optima_sit_on_the_circle_of_the_radius_and_returns_in_0_1():
+    """The optima are evenly spread on the circle of ``radius`` in the first two coordinates
+    (the first at 45° for 4 of them), Σ_start is ``exploration_std``² I, and noisy returns
+    are clamped to the reward range [0, 1]."""
+    task = MultimodalTask(dim=3, num_optima=4, radius=2.0, exploration_std=0.5)
+    root2 = math.sqrt(2.0)
+    expected = torch.tensor([[root2, root2, 0.0], [-root2, root2, 0.0]])
+    torch.testing.assert_close(task.optima[:2], expected)
+    torch.testing.assert_close(task.optima.norm(dim=-1), torch.full((4,), 2.0))
+    torch.testing.assert_close(task.sigma_start, 0.25 * torch.eye(3))
+    noisy = MultimodalTask(noise_std=10.0)
+    theta = torch.cat([noisy.optima, torch.zeros(4, 2)]).repeat(4, 1)
+    returns = noisy.evaluate(theta, torch.Generator().manual_seed(0))
+    assert float(returns.min()) == 0.0 and float(returns.max()) == 1.0
+
+
 def test_noisy_returns_without_a_generator_are_the_same_each_time():
     # The base class's promise: generator=None is a fixed default, so equal θ give equal
     # returns (the global RNG made a run's results.json differ between identical runs).
@@ -91,6 +107,11 @@ def test_noisy_returns_without_a_generator_are_the_same_each_time():
         ({"width": math.inf}, "width must be positive and finite"),
         ({"radius": math.nan}, "radius must be positive and finite"),
         ({"optima": [[math.nan, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]}, "non-finite"),
+        ({"optima": [[0.0, 0.0]] * 3}, r"optima must have shape \[4, 2\], got \[3, 2\]"),
+        ({"num_optima": 1}, "num_optima must be >= 2, got 1"),
+        ({"dim": 6}, r"dim must be in \[2, 5\], got 6"),
+        ({"width": 0.0}, "width must be positive and finite, got 0.0"),
+        ({"noise_std": math.inf}, "noise_std must be non-negative and finite, got inf"),
     ],
 )
 def test_bad_task_settings_are_refused_naming_them(kwargs, message):
