@@ -322,6 +322,24 @@ def test_a_sweep_over_a_hyperparameter_gives_each_run_its_own_directory(tmp_path
     ]
 
 
+def test_a_sweep_runs_directory_name_fits_a_file_name_however_many_settings():
+    """Eight settings of an ablation made a name past a file name's 255 bytes, which no
+    directory can have (ENAMETOOLONG): a long suffix keeps its start and a digest of all the
+    settings, so that runs differing past the cut still differ."""
+    from dipole_torch.training.resume import MAX_SUFFIX_BYTES, setting_suffix
+
+    fixed = [f"algo.optimizer.{key}=0.0{i}" for i, key in enumerate("abcdefgh")] + [
+        "task.env.obstacles=[{centre:[0.4,0.06,0.0],radius:0.05}]"
+    ]
+    names = {setting_suffix([*fixed, f"task.env.width={w}"]) for w in (0.25, 0.3)}
+    assert len(names) == 2
+    for name in names:
+        assert len(name.encode()) <= MAX_SUFFIX_BYTES
+        assert name.startswith("_algo.optimizer.a=0.00,algo.optimizer.b=0.01")
+    assert len(f"viapoint_blocked_dipole_coverage_seed1000000{max(names)}".encode()) < 255
+    assert setting_suffix(["algo.optimizer.M=4"]) == "_algo.optimizer.M=4"  # short: as it is
+
+
 def test_a_sweep_whose_runs_share_a_directory_says_how_to_tell_them_apart(tmp_path):
     # The budget does not name a run's directory: a sweep over it alone sends both runs to
     # one, and the second is refused, pointing at the sweep's directories (not hydra.run.dir).

@@ -10,6 +10,7 @@ its directory with its seed, and makes exactly the draws the uninterrupted run w
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shlex
 import sys
@@ -134,7 +135,19 @@ def setting_suffix(overrides) -> str:
         for o in overrides
         if str(o).split("=", 1)[0].lstrip("+~") not in NOT_IN_DIRECTORY_NAMES
     )
-    return "_" + ",".join(settings) if settings else ""
+    suffix = "_" + ",".join(settings) if settings else ""
+    if len(suffix.encode()) > MAX_SUFFIX_BYTES:
+        # A file name holds 255 bytes: the start of the settings, then a digest of them all
+        # (runs that differ only past the cut still get directories of their own).
+        digest = hashlib.sha1(suffix.encode()).hexdigest()[:10]
+        start = suffix.encode()[: MAX_SUFFIX_BYTES - 12].decode(errors="ignore")
+        suffix = f"{start}~{digest}"
+    return suffix
+
+
+# A sweep run's directory name after <task>_<algo>_seed<seed>: room left within a file name's
+# 255 bytes for the longest task and algorithm names.
+MAX_SUFFIX_BYTES = 160
 
 
 def _run_dir_of(resume: Path) -> Path:
