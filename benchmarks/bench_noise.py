@@ -305,7 +305,12 @@ def main(argv: Sequence[str] | None = None) -> None:
                         help="how far best()'s return lies above the truth (no JSON)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.best_gap:
+        default_json = ROOT / "docs" / "figures" / "noise.json"
+        if args.methods != list(METHODS) or args.json != default_json:
+            parser.error("--best-gap runs DIPOLE alone and writes no JSON: drop --methods, --json")
         noises = [s for s in args.noise if s > 0]
+        if not noises:
+            parser.error("--best-gap measures noisy returns: give a --noise above 0")
         tasks = [(dim, k, seed, noise, args.budget)
                  for dim in args.dims for noise in noises
                  for k in args.ks for seed in range(args.seeds)]  # fmt: skip

@@ -339,3 +339,22 @@ def test_a_failed_launcher_sweep_shows_train_pys_error(monkeypatch):
     monkeypatch.setattr(bench_launchers.subprocess, "run", failed)
     with pytest.raises(SystemExit, match=r"(?s)exit status 1.*hydra/launcher=joblib"):
         bench_launchers.launcher(1, 1)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--methods", "IPOP-CMA-ES"], "drop --methods, --json"),
+        (["--json", "/tmp/noise_gap.json"], "drop --methods, --json"),
+        (["--noise", "0"], "give a --noise above 0"),
+    ],
+)
+def test_the_best_gap_refuses_options_it_would_ignore(extra, message, capsys):
+    # --best-gap runs DIPOLE alone on noisy returns and writes no JSON: --methods and --json
+    # were ignored without a word, and noise 0 alone printed an empty table.
+    import bench_noise
+
+    with pytest.raises(SystemExit) as exit_:
+        bench_noise.main(["--best-gap", *extra])
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
