@@ -117,6 +117,7 @@ def test_a_combination_that_cannot_run_is_refused_naming_the_conflict():
         ({"importance": "best"}, ValueError, "importance must be 'policy' or 'global'"),
         ({"matching": None}, ValueError, "matching must be 'overlap' or 'replace'"),
         ({"alpha": math.nan}, ValueError, r"alpha \(DP concentration\) must be positive"),
+        ({"alpha": 0.0}, ValueError, r"alpha \(DP concentration\) must be positive"),
         ({"m": 2.5}, ValueError, r"m \(auxiliary components\) must be a positive integer"),
         ({"reward_floor": 1.0}, ValueError, r"reward_floor must lie in \(0, 1\)"),
         ({"reward_range": (1.0, "a")}, ValueError, "reward_range must be None, .low, high."),
@@ -154,6 +155,32 @@ def test_each_option_is_checked_once_naming_it(changes, error, message):
         DipoleOptions().replace(**changes)
     with pytest.raises(error, match=message):
         Dipole(torch.zeros(2), 1.0, **changes)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"unjudged_share": 1.0, "accept_unjudged": True, "hill_valley": True},
+        {"explore": 0.0},
+        {"explore": 1.0},
+        {"refine": 0.0},
+        {"retire_spread": 0.0},
+        {"refine_gate": 1.0},
+        {"regularization": 0.0},
+        {"retire_std": 0.0},
+        {"merge_radius": 0.0},
+        {"start_cap": 0.0},
+        {"prior_df": 5.5},
+        {"reward_floor": 0.5, "refine_share": 0.999},
+    ],
+)
+def test_the_closed_end_of_each_range_is_accepted(changes):
+    """The closed end of each option's documented range (``[0, 1]``, ``(0, 1]``,
+    ``[0, inf)``; a ν0 that is no whole number) is accepted, not refused by a check one
+    step too strict: the refused values are pinned by the test above."""
+    options = DipoleOptions().replace(**changes)
+    assert all(getattr(options, name) == value for name, value in changes.items())
+    Dipole(torch.zeros(2), 1.0, **changes)
 
 
 def test_both_variants_take_the_papers_constants():
