@@ -134,3 +134,21 @@ def test_an_open_side_and_scalar_bounds():
 def test_bad_bounds_raise_naming_what_is_wrong(name, bounds, error, match):
     with pytest.raises(error, match=match):
         BUILDERS[name](torch.zeros(2, dtype=DTYPE), torch.eye(2, dtype=DTYPE), bounds=bounds)
+
+
+@pytest.mark.parametrize("name", ["dipole", "power"])
+def test_pending_rows_loaded_from_another_box_are_checked_against_this_one(name):
+    """Rows pending in a loaded state were projected onto another optimizer's box: told as
+    they were asked, they are still checked against this one's (``strict=False`` with other
+    bounds), not taken as inside it because they are the rows asked."""
+
+    def build(bound):
+        generator = torch.Generator().manual_seed(0)
+        return BUILDERS[name]([0.0, 0.0], 1.0, bounds=(-bound, bound), generator=generator)
+
+    wide, narrow = build(10.0), build(0.5)
+    theta = wide.ask()
+    assert (theta.abs() > 0.5).any()  # rows outside the narrow box
+    narrow.load_state_dict(wide.state_dict(), strict=False)
+    with pytest.raises(ValueError, match="outside bounds"):
+        narrow.tell(theta, -theta.square().sum(-1))
