@@ -566,3 +566,30 @@ def test_ties_keep_the_first_best_and_a_tied_reevaluation_is_no_harm():
     covariances = opt.policy_covariances.clone()
     opt.reevaluate(worst.clone())
     assert torch.equal(opt.policy_covariances, covariances)
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
+def test_stop_meets_the_budget_at_exactly_max_trials(cls):
+    """``stop(max_trials)`` reports ``"max_trials"`` once ``trials`` reaches the budget, not
+    one trial later: a loop ``while not opt.stop(max_trials=N)`` spends exactly N trials
+    when the last ask is cut to fit."""
+    opt = cls([0.0, 0.0], 1.0, n0=4, generator=torch.Generator().manual_seed(0))
+    assert opt.stop(max_trials=1) == {}
+    theta = opt.ask(max_rows=3)
+    opt.tell(theta, -theta.square().sum(-1))
+    assert opt.stop(max_trials=4) == {} and opt.stop(max_trials=3) == {
+        "max_trials": "3 trials of 3"
+    }
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
+def test_only_a_tell_of_fewer_rows_than_asked_is_cut(cls, monkeypatch):
+    """The told batch is ``cut`` (which makes the hill-valley test forget the tests whose
+    probes went untold) when fewer rows are told than were asked, and only then."""
+    opt = cls([0.0, 0.0], 1.0, n0=4, generator=torch.Generator().manual_seed(0))
+    cuts, observe = [], opt._observe
+    monkeypatch.setattr(opt, "_observe", lambda batch: (cuts.append(batch.cut), observe(batch)))
+    for rows in (3, None, None, 99):
+        theta = opt.ask(max_rows=rows)
+        opt.tell(theta, -theta.square().sum(-1))
+    assert cuts == [True, False, False, False]
