@@ -78,7 +78,8 @@ def as_covariance(sigma_start, theta0: Tensor) -> Tensor:
             ) from None
     check_real_tensor(sigma_start, "sigma_start")
     check_finite(sigma_start, "sigma_start")
-    sigma = sigma_start.detach().to(device=theta0.device, dtype=DTYPE)
+    # A copy: the caller editing its tensor afterwards leaves Σ_start be.
+    sigma = sigma_start.detach().to(device=theta0.device, dtype=DTYPE, copy=True)
     if sigma.dim() < 2:
         if sigma.dim() == 1 and sigma.shape[0] != d:
             raise ValueError(

@@ -108,7 +108,7 @@ class PolicySearch:
         check_generator(generator)
         self.dtype = theta0.dtype
         self.device = theta0.device
-        self.theta0 = theta0.to(DTYPE)
+        self.theta0 = theta0.to(DTYPE, copy=True)  # a copy: the caller's edits leave it be
         self.sigma_start = sigma
         self._start_variances = sigma.diagonal()  # [D] (a view: it follows Σ_start)
         self.box = make_box(bounds, self.theta0)
@@ -401,7 +401,7 @@ class PolicySearch:
         self.trials += theta.shape[0]
         k = self.num_policies
         if first:
-            self.last_rewards = rewards
+            self.last_rewards = rewards.clone()  # not the caller's tensor
         elif batch.every_policy(k):
             self.last_rewards = rewards[:policy_rows].clone()
         else:

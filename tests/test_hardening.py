@@ -631,6 +631,54 @@ def test_editing_what_ask_and_result_return_leaves_the_run_be(kind, dtype):
 
 
 @pytest.mark.parametrize("kind", ["dipole", "power"])
+def test_editing_what_the_caller_passed_in_leaves_the_run_be(kind):
+    """θ0, Σ_start and the bounds given to the constructor, and the returns told, are taken
+    as copies: the caller editing those tensors in place afterwards (a reused buffer) changes
+    neither the settings nor the run (float64 θ0 and Σ_start were once kept as the caller's
+    tensors, and the first tell's returns as ``last_rewards``)."""
+    cls = Dipole if kind == "dipole" else Power
+
+    def make(theta0, sigma, lower):
+        return cls(theta0, sigma, generator=torch.Generator().manual_seed(0), bounds=(lower, 2.0))
+
+    theta0, sigma = torch.zeros(2, dtype=F64), 0.25 * torch.eye(2, dtype=F64)
+    lower = torch.full((2,), -2.0, dtype=F64)
+    opt, twin = make(theta0, sigma, lower), make(theta0.clone(), sigma.clone(), lower.clone())
+    theta0.add_(1.0), sigma.mul_(100.0), lower.add_(1.5)
+    assert torch.equal(opt.theta0, twin.theta0) and torch.equal(opt.sigma_start, twin.sigma_start)
+    assert torch.equal(opt.box[0], twin.box[0])
+    theta = opt.ask()
+    assert torch.equal(theta, twin.ask())
+    rewards = quadratic(theta)
+    opt.tell(theta, rewards)
+    twin.tell(theta.clone(), rewards.clone())
+    rewards.fill_(7.0)
+    theta.fill_(1.5)
+    assert torch.equal(opt.last_rewards, twin.last_rewards)
+    assert torch.equal(opt.thetas, twin.thetas) and torch.equal(opt.rewards, twin.rewards)
+    assert torch.equal(opt.best()[0], twin.best()[0])
+    twin.load_state_dict(opt.state_dict())  # the settings compared are still equal
+
+
+@pytest.mark.parametrize("kind", ["dipole", "power"])
+def test_editing_the_rows_and_returns_told_leaves_the_run_be(kind):
+    """The rows and returns told are taken as copies: the caller editing its tensors in place
+    after ``tell`` changes neither ``best()`` nor ``last_rewards`` (with no box, a float64
+    row told is the caller's own until copied; the first tell's returns were once kept as
+    ``last_rewards`` itself)."""
+    opt = build(kind)
+    for shift in (0.0, 10.0):  # the first batch, then a batch holding a new best
+        theta = opt.ask()
+        rewards = quadratic(theta) + shift
+        opt.tell(theta, rewards)
+        (best_theta, best_reward), last = opt.best(), opt.last_rewards.clone()
+        assert best_reward == float(rewards.max())
+        theta.add_(1.0)
+        rewards.fill_(-7.0)
+        assert torch.equal(opt.best()[0], best_theta) and torch.equal(opt.last_rewards, last)
+
+
+@pytest.mark.parametrize("kind", ["dipole", "power"])
 def test_a_copy_or_a_pickle_of_an_optimizer_goes_on_as_the_original(kind):
     import copy
     import pickle
