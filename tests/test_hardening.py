@@ -750,6 +750,7 @@ def _bad(state, key, value):
             "policy_covariances'] is not positive semi-definite",
         ),
         ("best_reward", lambda v: math.nan, r"state_dict\['best_reward'\] must be a return"),
+        ("best_theta", lambda v: v[:1], r"state_dict\['best_theta'\] must have shape \[2\]"),
         (("dp_state", "labels"), lambda v: v + 100, r"dp_state'\].labels must lie in \[0, "),
         (("dp_state", "means"), lambda v: v[:, :2], r"dp_state'\].means must have shape \[K, 3\]"),
         (("dp_state", "covariances"), lambda v: -v, "dp_state'].covariances is not positive"),
