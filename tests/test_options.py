@@ -183,6 +183,14 @@ def test_the_closed_end_of_each_range_is_accepted(changes):
     Dipole(torch.zeros(2), 1.0, **changes)
 
 
+@pytest.mark.parametrize("way", [{"accept_unjudged": True}, {"coverage_from": 3}])
+def test_unjudged_share_takes_either_way_of_accepting_unjudged(way):
+    """``unjudged_share`` needs policies accepted unjudged, by ``accept_unjudged`` or by
+    ``coverage_from``: either one alone is enough (the refusal is pinned above)."""
+    options = DipoleOptions(hill_valley=True, unjudged_share=0.5, **way)
+    assert options.unjudged_share == 0.5 and options.marks_unjudged
+
+
 def test_both_variants_take_the_papers_constants():
     # The paper's α = 1, m = 10 auxiliary components and M = 5 importance samples, written
     # out here (not read from the library's own table), in the default and the paper's set.
