@@ -198,3 +198,20 @@ def test_mean_rewards_host_and_tensor_paths_agree(seed):
         torch.randint(-1, k, (n,), generator=g),
     )
     assert torch.equal(archive.mean_rewards(k), archive._tensor_mean_rewards(k))
+
+
+def test_powers_first_batch_is_n0_and_its_exploration_decays_to_its_floor():
+    """PoWER's first batch has ``n0`` rows (default M), and after iteration t its
+    exploration is Σ_start · max(decay^t, min_exploration): 0.5, 0.25, 0.125, then the
+    floor 0.1."""
+    assert Power([0.0], 1.0, M=3).ask().shape[0] == 3
+    sigma = torch.diag(torch.tensor([1.0, 4.0], dtype=F64))
+    opt = Power(torch.zeros(2, dtype=F64), sigma, M=3, n0=7, exploration_decay=0.5,
+                min_exploration=0.1, generator=torch.Generator().manual_seed(0))  # fmt: skip
+    theta = opt.ask()
+    assert theta.shape[0] == 7
+    opt.tell(theta, -theta.square().sum(-1))
+    for factor in (0.5, 0.25, 0.125, 0.1, 0.1):
+        theta = opt.ask()
+        opt.tell(theta, -theta.square().sum(-1))
+        torch.testing.assert_close(opt.policy_covariances[0], factor * sigma)
