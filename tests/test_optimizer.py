@@ -593,3 +593,17 @@ def test_only_a_tell_of_fewer_rows_than_asked_is_cut(cls, monkeypatch):
         theta = opt.ask(max_rows=rows)
         opt.tell(theta, -theta.square().sum(-1))
     assert cuts == [True, False, False, False]
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
+def test_reevaluate_discards_a_pending_ask(cls):
+    """``reevaluate`` discards a pending ask (its rows were drawn for the world before the
+    change): telling them afterwards raises, as a tell with no ask does."""
+    opt = cls([0.0, 0.0], 1.0, n0=4, generator=torch.Generator().manual_seed(0))
+    theta = opt.ask()
+    opt.tell(theta, -theta.square().sum(-1))
+    theta = opt.ask()
+    opt.reevaluate(torch.zeros(opt.num_policies, dtype=F64))
+    assert opt.asked_owner is None
+    with pytest.raises(RuntimeError, match="without a preceding ask"):
+        opt.tell(theta, -theta.square().sum(-1))
