@@ -420,6 +420,8 @@ def test_a_refused_state_changes_nothing(kind):
          r"bounds: None saved"),
         ("power", lambda: Power(torch.zeros(2, dtype=F64), 1.0, exploration_decay=0.9),
          r"exploration_decay: 1.0 saved, 0.9 here"),
+        ("power", lambda: Power(torch.zeros(2, dtype=F64), 1.0, min_exploration=0.5),
+         r"min_exploration: 0.01 saved, 0.5 here"),
     ],
 )  # fmt: skip
 def test_a_state_saved_with_other_settings_is_refused_naming_them(kind, other, named):
