@@ -7,6 +7,7 @@ import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
 
 from dipole_torch import Dipole, DPSampler, GaussianMixture, Power
+from dipole_torch.result import SearchResult
 from dipole_torch.settings import setting_differences
 
 F64 = torch.float64
@@ -607,3 +608,17 @@ def test_reevaluate_discards_a_pending_ask(cls):
     assert opt.asked_owner is None
     with pytest.raises(RuntimeError, match="without a preceding ask"):
         opt.tell(theta, -theta.square().sum(-1))
+
+
+def test_the_printed_result_lists_the_best_policy_first():
+    """``print(result)`` lists the policies best return first, each named by its row."""
+    result = SearchResult(
+        best_theta=torch.zeros(1, dtype=F64), best_reward=3.0, trials=9, iterations=2,
+        means=torch.tensor([[0.0], [1.0], [2.0]], dtype=F64),
+        covariances=torch.ones(3, 1, 1, dtype=F64),
+        best_rewards=torch.tensor([1.0, 3.0, 2.0], dtype=F64),
+        active=torch.ones(3, dtype=torch.bool), converged=torch.zeros(3, dtype=torch.bool),
+        ids=torch.arange(3),
+    )  # fmt: skip
+    rows = [line.split()[0] for line in str(result).splitlines()[1:]]
+    assert rows == ["means[1]", "means[2]", "means[0]"]

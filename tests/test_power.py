@@ -215,3 +215,15 @@ def test_powers_first_batch_is_n0_and_its_exploration_decays_to_its_floor():
         theta = opt.ask()
         opt.tell(theta, -theta.square().sum(-1))
         torch.testing.assert_close(opt.policy_covariances[0], factor * sigma)
+
+
+def test_power_keeps_m_samples_of_its_first_batch_and_refuses_a_zero_floor():
+    """After the first batch PoWER keeps its importance set, the M best samples, not one
+    more; ``min_exploration`` must lie in (0, 1] (0 would let the exploration vanish)."""
+    opt = Power([0.0, 0.0], 1.0, M=3, n0=7, generator=torch.Generator().manual_seed(0))
+    theta = opt.ask()
+    rewards = -theta.square().sum(-1)
+    opt.tell(theta, rewards)
+    assert torch.equal(opt.rewards.sort().values, rewards.sort().values[-3:])
+    with pytest.raises(ValueError, match=r"min_exploration must lie in \(0, 1\]"):
+        Power([0.0], 1.0, exploration_decay=0.5, min_exploration=0.0)
