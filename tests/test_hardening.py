@@ -913,3 +913,13 @@ def test_a_dp_state_missing_a_part_is_refused_naming_it():
     state["dp_state"] = {k: v for k, v in state["dp_state"].items() if k != "labels"}
     with pytest.raises(ValueError, match=r"a DP mixture state's dict lacks \['labels'\]"):
         build("dipole").load_state_dict(state)
+
+
+@pytest.mark.parametrize("kind", ["dipole", "power"])
+@pytest.mark.parametrize("length", [1, 3])
+def test_stds_of_another_length_than_theta0_are_refused(kind, length):
+    """``[D]`` stds of another length are refused naming the shapes, a single one in a
+    list too (it is not taken as one std for every axis)."""
+    cls = Dipole if kind == "dipole" else Power
+    with pytest.raises(ValueError, match=r"sigma_start must have shape \[2, 2\]"):
+        cls(torch.zeros(2, dtype=F64), torch.ones(length, dtype=F64))
