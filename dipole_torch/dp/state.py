@@ -57,7 +57,7 @@ class DPMixtureState:
         """Raise ``ValueError`` naming what does not fit a chain over ``dim``-dimensional
         points (``num_points`` of them, when given): tensors of the wrong kind or shape,
         labels outside ``[0, K)`` or a component without a point (unless ``allow_empty``:
-        a chain's start may hold one, which Algorithm 8 gives no point and drops), means
+        a chain's start may hold one, which the sampler gives no point and drops), means
         that are not finite, covariances that are not symmetric positive definite."""
         labels, means, covs = self.labels, self.means, self.covariances
         for key, value in (("labels", labels), ("means", means), ("covariances", covs)):
