@@ -9,16 +9,23 @@ import torch
 from torch import Tensor
 
 
-def check_positive_definite(matrix: Tensor, name: str) -> None:
-    """Raise ``ValueError`` unless ``matrix: [..., D, D]`` is symmetric positive definite."""
+def _check_symmetric(matrix: Tensor, name: str) -> Tensor:
+    """Raise ``ValueError`` unless ``matrix: [..., D, D]`` is square, finite and symmetric
+    (to 1e-6 of its largest variance); returns that largest variance ``[...]``."""
     if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
         raise ValueError(f"{name} must be square matrices [..., D, D], got {list(matrix.shape)}")
     if not torch.isfinite(matrix).all():
         raise ValueError(f"{name} contains non-finite values")
-    scale = matrix.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1e-300)[..., None, None]
-    asym = (matrix - matrix.transpose(-1, -2)).abs() / scale
+    scale = matrix.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1e-300)
+    asym = (matrix - matrix.transpose(-1, -2)).abs() / scale[..., None, None]
     if (asym > 1e-6).any():
         raise ValueError(f"{name} is not symmetric")
+    return scale
+
+
+def check_positive_definite(matrix: Tensor, name: str) -> None:
+    """Raise ``ValueError`` unless ``matrix: [..., D, D]`` is symmetric positive definite."""
+    _check_symmetric(matrix, name)
     _, info = torch.linalg.cholesky_ex(matrix)
     if (info != 0).any():
         raise ValueError(f"{name} is not positive definite (Cholesky failed)")
@@ -31,14 +38,7 @@ def check_positive_semidefinite(matrix: Tensor, name: str, tolerance: float = 1e
     For covariances a run itself may leave singular: an exploration shrunk to rank one, or
     to zero, by rounding (the optimizer samples no policy whose covariance does not
     factorise), which a checkpoint must restore as it was."""
-    if matrix.dim() < 2 or matrix.shape[-1] != matrix.shape[-2]:
-        raise ValueError(f"{name} must be square matrices [..., D, D], got {list(matrix.shape)}")
-    if not torch.isfinite(matrix).all():
-        raise ValueError(f"{name} contains non-finite values")
-    scale = matrix.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1e-300)
-    asym = (matrix - matrix.transpose(-1, -2)).abs() / scale[..., None, None]
-    if (asym > 1e-6).any():
-        raise ValueError(f"{name} is not symmetric")
+    scale = _check_symmetric(matrix, name)
     symmetric = (matrix + matrix.transpose(-1, -2)) / 2
     if (torch.linalg.eigvalsh(symmetric).amin(-1) < -tolerance * scale).any():
         raise ValueError(f"{name} is not positive semi-definite (a negative eigenvalue)")
