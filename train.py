@@ -116,12 +116,9 @@ def train(cfg: DictConfig) -> dict:
         block = cfg.task.get("block")  # viapoint_blocked: the world changes mid-run
         start = time.perf_counter()
 
-        saved = {"trials": optimizer.trials}  # the trials of the latest checkpoint
-
         def save_checkpoint() -> None:
             wall = elapsed + time.perf_counter() - start
             checkpointer.save(optimizer, task_generator, history, blocked, wall, figure_trials)
-            saved["trials"] = optimizer.trials
 
         # The ask/tell loop: one iteration a batch.
         progress = console.Progress(cfg.trials, optimizer.trials, enabled=cfg.progress)
@@ -183,7 +180,7 @@ def train(cfg: DictConfig) -> dict:
             writer.close()
             log.info(
                 f"\nstopped by {stop.name} at {optimizer.trials} of {cfg.trials} trials; "
-                f"checkpoint at {saved['trials']} trials written to {checkpointer.path}\n"
+                f"checkpoint at {checkpointer.trials} trials written to {checkpointer.path}\n"
                 "resume with:\n  "
                 f"{resume.resume_command(overrides, checkpointer.path)}"
             )

@@ -350,6 +350,7 @@ class Checkpointer:
     def __init__(self, path: Path, config_yaml: str, overrides: list[str], shape: dict):
         self.path, self.config_yaml = path, config_yaml
         self.overrides, self.shape = overrides, shape
+        self.trials: int | None = None  # the trials of the last checkpoint written
 
     def save(
         self,
@@ -376,3 +377,4 @@ class Checkpointer:
             },
             self.path,
         )
+        self.trials = optimizer.trials
