@@ -25,6 +25,28 @@ def test_the_help_describes_a_script_in_whole_sentences(script):
     assert re.search(r"[.?!)]$", first), f"{script.name}: {first[-60:]!r}"
 
 
+PARSE_ARGS = argparse.ArgumentParser.parse_args
+
+
+def exit_of_parsing(monkeypatch, module, argv: list[str]) -> int:
+    """The exit status of ``module.main()`` with ``sys.argv = argv``, stopped right after its
+    arguments are parsed: a value the parser takes would start the benchmark, so taking it
+    fails the test (AssertionError naming ``argv``)."""
+    monkeypatch.setattr(sys, "argv", argv)
+
+    def parse_only(self, *args, **kwargs):
+        PARSE_ARGS(self, *args, **kwargs)
+        raise AssertionError(f"took {' '.join(map(str, argv))}")
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
+    try:
+        with pytest.raises(SystemExit) as exit_:
+            module.main()
+    finally:
+        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", PARSE_ARGS)
+    return exit_.value.code
+
+
 # A count of 0 or below used to run nothing and write an empty report over the figure's JSON
 # (--seeds 0), or end in a traceback from inside the run (ZeroDivisionError, Pool(-1)).
 BAD_VALUES = [
@@ -71,17 +93,7 @@ def test_a_bad_count_is_an_argparse_error_naming_the_option(
     script, option, value, monkeypatch, capsys
 ):
     module = importlib.import_module(script)
-    monkeypatch.setattr(sys, "argv", [f"{script}.py", option, value])
-    parse_args = argparse.ArgumentParser.parse_args
-
-    def parse_only(self, *args, **kwargs):  # a value taken would start the benchmark: stop
-        parse_args(self, *args, **kwargs)
-        raise AssertionError(f"{script}.py took {option} {value}")
-
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
-    with pytest.raises(SystemExit) as exit_:
-        module.main()
-    assert exit_.value.code == 2
+    assert exit_of_parsing(monkeypatch, module, [f"{script}.py", option, value]) == 2
     assert f"argument {option}: must be" in capsys.readouterr().err
 
 
@@ -89,17 +101,8 @@ def test_an_unknown_startup_task_is_an_argparse_error(monkeypatch, capsys):
     # It timed the anchors, then failed in train.py's child with Hydra's error.
     import bench_startup
 
-    monkeypatch.setattr(sys, "argv", ["bench_startup.py", "--task", "nosuch"])
-    parse_args = argparse.ArgumentParser.parse_args
-
-    def parse_only(self, *args, **kwargs):
-        parse_args(self, *args, **kwargs)
-        raise AssertionError("bench_startup.py took --task nosuch")
-
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
-    with pytest.raises(SystemExit) as exit_:
-        bench_startup.main()
-    assert exit_.value.code == 2
+    argv = ["bench_startup.py", "--task", "nosuch"]
+    assert exit_of_parsing(monkeypatch, bench_startup, argv) == 2
     assert "argument --task: invalid choice: 'nosuch'" in capsys.readouterr().err
 
 
@@ -155,17 +158,7 @@ def test_a_device_this_machine_lacks_is_an_argparse_error(script, monkeypatch, c
     assert argtypes.device("cpu") == "cpu"
     bad = "nosuch" if torch.cuda.is_available() else "cuda"
     module = importlib.import_module(script)
-    monkeypatch.setattr(sys, "argv", [f"{script}.py", "--device", bad])
-    parse_args = argparse.ArgumentParser.parse_args
-
-    def parse_only(self, *args, **kwargs):
-        parse_args(self, *args, **kwargs)
-        raise AssertionError(f"{script}.py took --device {bad}")
-
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
-    with pytest.raises(SystemExit) as exit_:
-        module.main()
-    assert exit_.value.code == 2
+    assert exit_of_parsing(monkeypatch, module, [f"{script}.py", "--device", bad]) == 2
     assert "argument --device: " in capsys.readouterr().err
 
 
@@ -186,18 +179,7 @@ def test_a_json_path_that_cannot_be_written_is_refused_before_the_run(
     module = importlib.import_module(script)
     (tmp_path / "file").write_text("")
     for bad, said in [(tmp_path, "is a directory"), (tmp_path / "file" / "x.json", "not a dir")]:
-        monkeypatch.setattr(sys, "argv", [f"{script}.py", "--json", str(bad)])
-        parse_args = argparse.ArgumentParser.parse_args
-
-        def parse_only(self, *args, parse_args=parse_args, bad=bad, **kwargs):
-            parse_args(self, *args, **kwargs)
-            raise AssertionError(f"{script}.py took --json {bad}")
-
-        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
-        with pytest.raises(SystemExit) as exit_:
-            module.main()
-        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_args)
-        assert exit_.value.code == 2
+        assert exit_of_parsing(monkeypatch, module, [f"{script}.py", "--json", str(bad)]) == 2
         assert "argument --json: " in (err := capsys.readouterr().err) and said in err
 
 
@@ -220,17 +202,8 @@ def test_an_out_that_is_a_file_is_an_argparse_error(script, tmp_path, monkeypatc
     module = importlib.import_module(script)
     (tmp_path / "file").write_text("")
     argv = [f"{script}.py", "--out", str(tmp_path / "file")]
-    monkeypatch.setattr(sys, "argv", argv + ([str(tmp_path)] if script == "aggregate" else []))
-    parse_args = argparse.ArgumentParser.parse_args
-
-    def parse_only(self, *args, **kwargs):
-        parse_args(self, *args, **kwargs)
-        raise AssertionError(f"{script}.py took --out {tmp_path / 'file'}")
-
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_only)
-    with pytest.raises(SystemExit) as exit_:
-        module.main()
-    assert exit_.value.code == 2
+    argv += [str(tmp_path)] if script == "aggregate" else []
+    assert exit_of_parsing(monkeypatch, module, argv) == 2
     assert "argument --out: " in capsys.readouterr().err
 
 
