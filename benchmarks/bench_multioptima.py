@@ -227,11 +227,28 @@ def random_rotation(dim: int, generator: torch.Generator) -> Tensor:
     return q
 
 
+def grid_error(dims: Sequence[int], ks: Sequence[int]) -> str | None:
+    """Why a grid of ``--dims`` and ``--ks`` has a case with no landscape, or None.
+
+    On a line, k centres ``MIN_SEPARATION`` apart fill (k − 1)·``MIN_SEPARATION`` of the box's
+    width 2·``BOX``: at that width or beyond, the uniform draws of ``make_landscape`` never
+    meet the separation (from D = 2 up, k ≤ 8 fits with room)."""
+    most = math.ceil(2.0 * BOX / MIN_SEPARATION)  # the largest k with (k − 1)·sep < 2·BOX
+    if 1 in dims and max(ks) > most:
+        return (
+            f"k = {max(ks)} centres {MIN_SEPARATION} apart do not fit in [-{BOX}, {BOX}] "
+            f"(D = 1 takes k ≤ {most})"
+        )
+    return None
+
+
 def make_landscape(dim: int, k: int, seed: int) -> Landscape:
     """The landscape of the module docstring: k/2 bumps then k/2 sharp peaks, drawn from
     ``torch.Generator().manual_seed(seed)``."""
     if k < 2 or k % 2:
         raise ValueError(f"k must be a positive even number, got {k}")
+    if (error := grid_error([dim], [k])) is not None:
+        raise ValueError(error)
     g = torch.Generator().manual_seed(seed)
     for _ in range(100_000):
         # Redraw the whole set (not one centre at a time): uniform given the separation.
@@ -830,6 +847,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     add_keep_others(parser)
     args = parser.parse_args(argv)
+    if (error := grid_error(args.dims, args.ks)) is not None:
+        parser.error(f"argument --ks: {error}")
     budgets = sorted(set(args.budgets))
     methods = [m for m in METHODS + OPT_IN if m in args.methods]
     # Slowest first (DIPOLE clusters, PoWER tells 2000 times; high D costs more), so the last

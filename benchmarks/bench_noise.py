@@ -58,6 +58,7 @@ from bench_multioptima import (  # noqa: E402
     _run_ask_tell,
     _start,
     case_seeds,
+    grid_error,
     ipop_restart,
     make_landscape,
     run_dipole,
@@ -304,6 +305,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--best-gap", action="store_true",
                         help="how far best()'s return lies above the truth (no JSON)")  # fmt: skip
     args = parser.parse_args(argv)
+    if (error := grid_error(args.dims, args.ks)) is not None:
+        parser.error(f"argument --ks: {error}")
     if args.best_gap:
         default_json = ROOT / "docs" / "figures" / "noise.json"
         if args.methods != list(METHODS) or args.json != default_json:

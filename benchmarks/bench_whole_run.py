@@ -41,7 +41,7 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_multioptima import OPT_IN as GRID_OPT_IN  # noqa: E402
 from bench_multioptima import RUNNERS as GRID_RUNNERS  # noqa: E402
-from bench_multioptima import Snapshots, _start, case_seeds, make_landscape  # noqa: E402
+from bench_multioptima import Snapshots, _start, case_seeds, grid_error, make_landscape  # noqa: E402
 from setting import setting_line  # noqa: E402
 
 from dipole_torch.dp.sampler import DPSampler  # noqa: E402
@@ -146,6 +146,8 @@ def main() -> None:
         "--methods", nargs="+", action=Distinct, default=list(METHODS), choices=METHODS + OPT_IN
     )
     args = parser.parse_args()
+    if (error := grid_error(args.dims, args.ks)) is not None:
+        parser.error(f"argument --ks: {error}")
     torch.set_num_threads(1)
     print(setting_line())
     methods = [m for m in METHODS + OPT_IN if m in args.methods]

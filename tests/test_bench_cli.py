@@ -97,6 +97,27 @@ def test_a_bad_count_is_an_argparse_error_naming_the_option(
     assert f"argument {option}: must be" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("script", ["bench_multioptima", "bench_noise", "bench_whole_run"])
+def test_optima_that_cannot_fit_on_a_line_are_an_argparse_error(script, monkeypatch, capsys):
+    # --dims 1 --ks 8 drew centres 100 000 times, then ended in make_landscape's RuntimeError.
+    module = importlib.import_module(script)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", "--dims", "1", "2", "--ks", "2", "6"])
+    with pytest.raises(SystemExit) as exit_:
+        module.main()  # refused before any work
+    assert exit_.value.code == 2
+    assert "argument --ks: k = 6 centres 2.0 apart do not fit" in capsys.readouterr().err
+
+
+def test_the_grid_check_refuses_on_a_line_only_what_cannot_be_drawn():
+    from bench_multioptima import grid_error, make_landscape
+
+    assert grid_error([1], [4]) is None and make_landscape(1, 4, seed=0).centres.shape == (4, 1)
+    assert grid_error([2, 10], [8]) is None
+    assert grid_error([1], [6]) is not None  # 5 gaps of 2.0 fill the width 10 exactly
+    with pytest.raises(ValueError, match="D = 1 takes k ≤ 5"):
+        make_landscape(1, 8, seed=0)
+
+
 def test_an_unknown_startup_task_is_an_argparse_error(monkeypatch, capsys):
     # It timed the anchors, then failed in train.py's child with Hydra's error.
     import bench_startup
