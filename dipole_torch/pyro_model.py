@@ -320,8 +320,8 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
 
     Args:
         y: ``[N, D]`` finite data, one row per label of ``state``.
-        state: labels ``[N]`` (any numbering), means ``[K, D]``, covariances ``[K, D, D]``
-            (Σ + R), and H.
+        state: labels ``[N]`` in ``[0, K)``, each component holding one or more, means
+            ``[K, D]``, covariances ``[K, D, D]`` (Σ + R), and H.
         alpha: DP concentration, a finite α > 0.
 
     Returns:
@@ -329,7 +329,8 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
 
     Raises:
         ValueError: ``alpha`` out of range, ``y`` not ``[N, D]`` or holding NaN or inf,
-            ``state`` with empty components.
+            ``state`` that fails ``DPMixtureState.check`` (a component without a point, a
+            label out of range, covariances not positive definite).
         TypeError: ``y`` not a tensor, ``state`` not a ``DPMixtureState``.
     """
     if not isinstance(state, DPMixtureState):
@@ -338,9 +339,8 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
     prior = state.prior
     check_matrix_shape(y, (state.labels.numel(), prior.dim), "y")
     check_finite(y, "y")
+    state.check(prior.dim, state.labels.numel())  # the model has no empty component
     counts = state.counts.to(prior.mean_loc.dtype)
-    if bool((counts == 0).any()):
-        raise ValueError("state has empty components; the model has none")
     k, n = counts.numel(), counts.sum()
     alpha_t = torch.as_tensor(alpha, dtype=counts.dtype, device=counts.device)
     partition = (

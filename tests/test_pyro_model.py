@@ -247,8 +247,15 @@ def test_log_joint_refuses_bad_y_and_state():
         state.labels, torch.cat([state.means, state.means[:1]]),
         torch.cat([state.covariances, state.covariances[:1]]), state.prior,
     )  # fmt: skip
-    with pytest.raises(ValueError, match="state has empty components"):
+    with pytest.raises(ValueError, match="state: every component of means must hold a point"):
         dp_log_joint(y, empty, 1.0)
+    # A label beyond the components was torch.bincount's or gather's error.
+    beyond = DPMixtureState(
+        state.labels.clone().index_fill_(0, torch.tensor([0]), state.means.shape[0]),
+        state.means, state.covariances, state.prior,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"state.labels must lie in \[0, 1\)"):
+        dp_log_joint(y, beyond, 1.0)
     # Σ_k = covariances_k − R not positive definite (here below R): density 0, not an error.
     below = DPMixtureState(
         state.labels, state.means, 0.5 * state.prior.regularization.expand_as(state.covariances),
