@@ -103,6 +103,14 @@ def test_envs_use_the_task_physics_and_seeding():
     assert first[2] != 0 and abs(first[2]) <= 0.05
 
 
+def test_reset_seeds_draw_different_starts_and_unseeded_resets_go_on_drawing():
+    env = gym.make("dipole/CartPole-v1")
+    first, _ = env.reset(seed=7)
+    other, _ = env.reset(seed=8)
+    following, _ = env.reset()
+    assert len({first[2], other[2], following[2]}) == 3
+
+
 @pytest.mark.parametrize("force_limit", [10.0, 30.0])
 def test_cartpole_observations_stay_in_the_space_from_extreme_starts(force_limit):
     # Starts at the corners of start_space (the fastest live states) under full pushes, until
