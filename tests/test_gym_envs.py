@@ -111,6 +111,19 @@ def test_reset_seeds_draw_different_starts_and_unseeded_resets_go_on_drawing():
     assert len({first[2], other[2], following[2]}) == 3
 
 
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_a_truncated_episode_has_ended(env_id):
+    # A zero push keeps the pole up and the car short of the goal for three steps.
+    env = gym.make(env_id, steps=3).unwrapped
+    env.reset(seed=0)
+    action = np.zeros(1) if "CartPole" in env_id else 0
+    for _ in range(3):
+        _, _, terminated, truncated, _ = env.step(action)
+    assert truncated and not terminated
+    with pytest.raises(RuntimeError, match="episode has ended"):
+        env.step(action)
+
+
 @pytest.mark.parametrize("force_limit", [10.0, 30.0])
 def test_cartpole_observations_stay_in_the_space_from_extreme_starts(force_limit):
     # Starts at the corners of start_space (the fastest live states) under full pushes, until
