@@ -124,6 +124,19 @@ def test_a_truncated_episode_has_ended(env_id):
         env.step(action)
 
 
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_editing_an_observation_leaves_the_environment_be(env_id):
+    runs = []
+    for edit in (False, True):
+        env = gym.make(env_id).unwrapped
+        observation, _ = env.reset(seed=0)
+        if edit:
+            observation += 0.01
+        action = np.ones(1) if "CartPole" in env_id else 1
+        runs.append(env.step(action)[0])
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
 @pytest.mark.parametrize("force_limit", [10.0, 30.0])
 def test_cartpole_observations_stay_in_the_space_from_extreme_starts(force_limit):
     # Starts at the corners of start_space (the fastest live states) under full pushes, until
