@@ -1,6 +1,7 @@
 """The gymnasium environments: registration and specs, env checker, same returns as the batched
 tasks, observation bounds, rendering (rgb_array frames, RenderCollection, RecordVideo, human)."""
 
+import math
 import warnings
 
 import dipole_torch.tasks  # noqa: F401  (registers the environments)
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from dipole_torch.tasks.cartpole import CartPoleTask
+from dipole_torch.tasks.gym_envs import _cartpole_bounds
 from dipole_torch.tasks.mountain_car import MountainCarTask
 from dipole_torch.tasks.rendering import AXLE_COLOR, POLE_COLOR, WHEEL_COLOR
 from gymnasium.error import DependencyNotInstalled
@@ -135,6 +137,24 @@ def test_editing_an_observation_leaves_the_environment_be(env_id):
         action = np.ones(1) if "CartPole" in env_id else 1
         runs.append(env.step(action)[0])
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_cartpole_spaces_are_the_documented_bounds():
+    # The docstring's table and Starting State: ±2.4 m, ±2·2.4/τ, ±12°, ±2·12°/τ live, and
+    # the observation bounds derived from them, widened by 0.1%, for the default task.
+    env = gym.make("dipole/CartPole-v1").unwrapped
+    twelve_degrees = math.radians(12)
+    np.testing.assert_allclose(
+        env.start_space.high, [2.4, 2 * 2.4 / 0.02, twelve_degrees, 2 * twelve_degrees / 0.02]
+    )
+    np.testing.assert_allclose(
+        env.observation_space.high, [7.212947, 240.8190, 0.6387916, 21.95572], rtol=1e-6
+    )
+    # Each float32 bound is the first float32 at or above the derived (float64) one.
+    _, reached = _cartpole_bounds(env.task)
+    high = env.observation_space.high
+    assert np.all(high.astype(np.float64) >= reached)
+    assert np.all(np.nextafter(high, np.float32(0)).astype(np.float64) < reached)
 
 
 @pytest.mark.parametrize("force_limit", [10.0, 30.0])
