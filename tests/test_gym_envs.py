@@ -12,7 +12,12 @@ import torch
 from dipole_torch.tasks.cartpole import CartPoleTask
 from dipole_torch.tasks.gym_envs import _cartpole_bounds
 from dipole_torch.tasks.mountain_car import MountainCarTask
-from dipole_torch.tasks.rendering import AXLE_COLOR, POLE_COLOR, WHEEL_COLOR
+from dipole_torch.tasks.rendering import (
+    AXLE_COLOR,
+    POLE_COLOR,
+    WHEEL_COLOR,
+    Canvas,
+)
 from gymnasium.error import DependencyNotInstalled
 from gymnasium.utils.env_checker import check_env
 from gymnasium.utils.passive_env_checker import env_render_passive_checker
@@ -280,6 +285,33 @@ def test_mountain_car_frames_follow_the_car():
     valley = env.render()
     env.reset(options={"initial_state": [-0.5, 0.05]})
     assert np.array_equal(valley, env.render())  # the velocity does not show
+
+
+def _shade(coverage):
+    """The value of a white pixel with black blended in by ``clip(coverage, 0, 1)``."""
+    return round(255 * (1 - min(max(coverage, 0.0), 1.0)))
+
+
+def test_canvas_shapes_cover_a_pixel_by_a_half_less_its_distance_to_the_edge():
+    # The module's rule: coverage clip(0.5 - d, 0, 1), d the signed distance from the pixel's
+    # centre (j + 0.5, i + 0.5) to the shape's edge, negative inside; rounded to the nearest.
+    for corners in ([(2.25, 1), (6, 1), (6, 5), (2.25, 5)], [(2.25, 5), (6, 5), (6, 1), (2.25, 1)]):
+        canvas = Canvas(12, 8)
+        canvas.polygon(corners, (0, 0, 0))  # either orientation
+        image = canvas.image()[..., 0]
+        assert image[3, 2] == _shade(0.5 - (2.25 - 2.5)) == 64  # 63.75, rounded
+        assert image[3, 4] == 0 and image[3, 1] == 255 and image[3, 6] == 255
+    canvas = Canvas(12, 8)
+    canvas.disc((4, 4), 2, (0, 0, 0))
+    image = canvas.image()[..., 0]
+    assert image[4, 5] == _shade(0.5 - (math.hypot(1.5, 0.5) - 2)) == 21
+    assert image[4, 4] == 0 and image[4, 6] == 255
+    canvas = Canvas(12, 8)
+    canvas.segment((2, 4), (8, 4), 2, (0, 0, 0))  # 2 pixels wide, round ends
+    image = canvas.image()[..., 0]
+    assert image[4, 5] == 0 and image[5, 5] == _shade(0.5 - (1.5 - 1)) == 255
+    assert image[4, 8] == _shade(0.5 - (math.hypot(0.5, 0.5) - 1)) == 53  # the round end
+    assert image[4, 9] == 255  # beyond the end, not on the line's continuation
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
