@@ -314,6 +314,21 @@ def test_canvas_shapes_cover_a_pixel_by_a_half_less_its_distance_to_the_edge():
     assert image[4, 9] == 255  # beyond the end, not on the line's continuation
 
 
+def test_canvas_ground_fills_below_the_curve_and_outlines_it():
+    canvas = Canvas(4, 8)
+    canvas.ground(np.full(4, 3.25), np.zeros(4), (0, 0, 0))
+    assert canvas.image()[:, 1, 0].tolist() == [255, 255, 255, _shade(0.5 + 0.25), 0, 0, 0, 0]
+    # The distance across the curve is the vertical one times cos of the slope's angle.
+    canvas = Canvas(4, 8)
+    canvas.ground(np.full(4, 3.25), np.ones(4), (0, 0, 0))
+    assert canvas.image()[3, 1, 0] == _shade(0.5 + 0.25 / math.sqrt(2)) == 82
+    # The outline is the curve 2 pixels thick: coverage 1.5 - |d|.
+    canvas = Canvas(4, 8)
+    canvas.ground(np.full(4, 3.25), np.zeros(4), (255, 255, 255), outline=(0, 0, 0))
+    column = canvas.image()[:, 1, 0].tolist()
+    assert column == [255, 255, _shade(1.5 - 0.75), 0, _shade(1.5 - 1.25), 255, 255, 255]
+
+
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_rendering_leaves_observations_and_rewards_alone(env_id):
     runs = []
