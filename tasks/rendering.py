@@ -115,6 +115,9 @@ class Canvas:
     def segment(self, start: Point, end: Point, width: float, color: Color) -> None:
         """Draw the line from ``start`` to ``end``, ``width`` pixels thick, with round ends."""
         (x0, y0), (x1, y1) = start, end
+        # (Python's min and max below pass over a NaN second argument: check the ends here.)
+        if not all(map(math.isfinite, (x0, y0, x1, y1))):
+            raise ValueError("shape coordinates must be finite")
         half = width / 2
         window = self._window(
             min(x0, x1) - half, max(x0, x1) + half, min(y0, y1) - half, max(y0, y1) + half

@@ -329,6 +329,24 @@ def test_canvas_ground_fills_below_the_curve_and_outlines_it():
     assert column == [255, 255, _shade(1.5 - 0.75), 0, _shade(1.5 - 1.25), 255, 255, 255]
 
 
+def test_canvas_refuses_an_empty_image_too_few_corners_and_coordinates_beyond_finite():
+    with pytest.raises(ValueError, match="width and height must be positive"):
+        Canvas(0, 5)
+    canvas = Canvas(12, 8)
+    with pytest.raises(ValueError, match="points must have shape"):
+        canvas.polygon([(1, 1), (5, 5)], (0, 0, 0))
+    with pytest.raises(ValueError, match="finite"):
+        canvas.polygon([(1, 1), (5, 1), (5, np.inf)], (0, 0, 0))
+    # Either end of a segment, either coordinate (Python's min and max pass a NaN second
+    # argument over: the check is on the ends themselves).
+    for end in ((5, np.nan), (np.nan, 3), (5, np.inf)):
+        with pytest.raises(ValueError, match="finite"):
+            canvas.segment((0, 3), end, 2, (0, 0, 0))
+        with pytest.raises(ValueError, match="finite"):
+            canvas.segment(end, (0, 3), 2, (0, 0, 0))
+    assert (canvas.image() == 255).all()
+
+
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_rendering_leaves_observations_and_rewards_alone(env_id):
     runs = []
