@@ -274,6 +274,23 @@ def test_cartpole_frames_follow_the_cart_and_the_pole():
     assert not np.array_equal(centre, frame(0.0, 0.001))  # any change of state shows
 
 
+def test_cartpole_frame_stands_the_pole_up_from_the_axle_on_the_track():
+    # The track 100 pixels above the bottom (row 300), the 50 × 30 cart centred on it, the
+    # axle a quarter of the cart's height above its centre, and the pole 2 · length = 1 m
+    # (125 pixels) long upward from the axle; all of it 10 pixels wide (the axle's disc too).
+    env = gym.make("dipole/CartPole-v1", render_mode="rgb_array").unwrapped
+    env.reset(options={"initial_state": [0.0, 0.0, 0.0, 0.0]})
+    frame = env.render()
+    cart_rows = np.nonzero(np.all(frame[:, 280] == 0, axis=-1))[0]
+    assert cart_rows.tolist() == list(range(285, 315))
+    axle_rows, axle_columns = np.nonzero(np.all(frame == np.array(AXLE_COLOR, np.uint8), axis=-1))
+    assert axle_rows.mean() == pytest.approx(300 - 30 / 4 - 0.5, abs=0.5)
+    assert axle_rows.max() - axle_rows.min() < 10 and axle_columns.max() - axle_columns.min() < 10
+    pole_rows = np.nonzero(np.all(frame == np.array(POLE_COLOR, np.uint8), axis=-1))[0]
+    assert pole_rows.min() == pytest.approx(292.5 - (125 - 5), abs=1)
+    assert pole_rows.max() < 300
+
+
 def test_mountain_car_frames_follow_the_car():
     env = gym.make("dipole/MountainCar-v0", render_mode="rgb_array").unwrapped
     wheels = []
