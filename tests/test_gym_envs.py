@@ -14,13 +14,17 @@ from dipole_torch.tasks.gym_envs import _cartpole_bounds
 from dipole_torch.tasks.mountain_car import MountainCarTask
 from dipole_torch.tasks.rendering import (
     AXLE_COLOR,
+    FLAG_COLOR,
+    GROUND_COLOR,
     POLE_COLOR,
+    WALL_COLOR,
     WHEEL_COLOR,
     Canvas,
 )
 from gymnasium.error import DependencyNotInstalled
 from gymnasium.utils.env_checker import check_env
 from gymnasium.utils.passive_env_checker import env_render_passive_checker
+from scipy import ndimage
 
 ENV_IDS = ["dipole/CartPole-v1", "dipole/MountainCar-v0"]
 DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
@@ -289,6 +293,50 @@ def test_cartpole_frame_stands_the_pole_up_from_the_axle_on_the_track():
     pole_rows = np.nonzero(np.all(frame == np.array(POLE_COLOR, np.uint8), axis=-1))[0]
     assert pole_rows.min() == pytest.approx(292.5 - (125 - 5), abs=1)
     assert pole_rows.max() < 300
+
+
+def test_mountain_car_frame_lays_out_the_road_walls_flag_and_car():
+    # The position axis spans [-1.5 - 0.2, 1.5 + 0.2] over the 600 columns; the road is
+    # 0.45 sin(3x) at that scale with its zero at row 0.6 · 400 (y down).
+    scale = 600 / 3.4
+
+    def road(x):
+        return (x + 1.7) * scale, 240 - 0.45 * math.sin(3 * x) * scale
+
+    env = gym.make("dipole/MountainCar-v0", render_mode="rgb_array").unwrapped
+
+    def pixels(frame, color):
+        return np.all(frame == np.array(color, np.uint8), axis=-1)
+
+    env.reset(options={"initial_state": [0.4, 0.0]})
+    frame = env.render()
+    ground = pixels(frame, GROUND_COLOR)
+    tops = np.array([np.nonzero(ground[:, j])[0].min() for j in range(60, 340)])
+    floor_x, floor_y = road(-math.pi / 6)  # the valley floor
+    assert 60 + np.nonzero(tops == tops.max())[0].mean() == pytest.approx(floor_x, abs=2)
+    assert tops.max() == pytest.approx(floor_y, abs=2)
+    # A wall 6 pixels wide where a car (40 wide) stopped at either end touches it.
+    wall_columns = np.nonzero(pixels(frame, WALL_COLOR))[1]
+    left, right = wall_columns[wall_columns < 300], wall_columns[wall_columns > 300]
+    assert np.median(left) == pytest.approx(road(-1.5)[0] - 23, abs=1)  # (the median: blends
+    assert np.median(right) == pytest.approx(road(1.5)[0] + 23, abs=1)  # can hit the grey)
+    assert np.nonzero(pixels(frame, FLAG_COLOR))[1].min() == pytest.approx(road(0.5)[0], abs=1)
+    # The car on a slope: two wheels 20 pixels apart along the road, their midpoint 9 pixels
+    # above it along the road's upward normal.
+    x = -0.9
+    env.reset(options={"initial_state": [x, 0.0]})
+    labels, count = ndimage.label(pixels(env.render(), WHEEL_COLOR))
+    sizes = ndimage.sum_labels(labels > 0, labels, range(1, count + 1))
+    wheels = [i + 1 for i in range(count) if sizes[i] > 50]  # (blends can hit the grey)
+    assert len(wheels) == 2
+    (row_0, column_0), (row_1, column_1) = ndimage.center_of_mass(labels > 0, labels, wheels)
+    gradient = -3 * 0.45 * math.cos(3 * x)  # dy/dx of the road in the image
+    assert math.hypot(row_1 - row_0, column_1 - column_0) == pytest.approx(20, abs=1)
+    assert (row_1 - row_0) / (column_1 - column_0) == pytest.approx(gradient, rel=0.05)
+    road_x, road_y = road(x)
+    norm = math.hypot(1.0, gradient)
+    assert (column_0 + column_1) / 2 == pytest.approx(road_x + 9 * gradient / norm, abs=1)
+    assert (row_0 + row_1) / 2 == pytest.approx(road_y - 9 / norm, abs=1)
 
 
 def test_mountain_car_frames_follow_the_car():
