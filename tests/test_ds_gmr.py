@@ -98,6 +98,13 @@ def test_bad_inputs_raise():
         ds.rollout(torch.zeros(2, 8), torch.zeros(3))
 
 
+def test_a_duration_a_hair_off_a_multiple_of_dt_is_refused():
+    # 1.0 / 0.0999 rounds to 10 steps, 0.999 s: 0.1 % short of the duration asked for.
+    with pytest.raises(ValueError, match="multiple of dt"):
+        DSGMR(3, duration=1.0, dt=0.0999, stiffness=10.0)
+    assert DSGMR(3, duration=0.3, dt=0.1, stiffness=10.0).steps == 3  # float rounding is fine
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_runs_on_cuda():
     ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0, device="cuda")
