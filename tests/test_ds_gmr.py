@@ -105,6 +105,13 @@ def test_a_duration_a_hair_off_a_multiple_of_dt_is_refused():
     assert DSGMR(3, duration=0.3, dt=0.1, stiffness=10.0).steps == 3  # float rounding is fine
 
 
+def test_the_time_std_defaults_to_half_the_spacing_of_the_time_centres():
+    assert DSGMR(4, duration=2.0, dt=0.1, stiffness=10.0).time_std == pytest.approx(0.25)
+    with_goal = DSGMR(4, duration=2.0, dt=0.1, stiffness=10.0, goal_time=1.6)
+    assert with_goal.time_std == pytest.approx(0.2)  # the spacing on [0, goal_time]
+    assert DSGMR(4, duration=2.0, dt=0.1, stiffness=10.0, time_std=0.3).time_std == 0.3
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_runs_on_cuda():
     ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0, device="cuda")
