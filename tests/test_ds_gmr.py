@@ -112,6 +112,17 @@ def test_the_time_std_defaults_to_half_the_spacing_of_the_time_centres():
     assert DSGMR(4, duration=2.0, dt=0.1, stiffness=10.0, time_std=0.3).time_std == 0.3
 
 
+def test_one_generator_rolls_out_in_float32_and_float64_in_turn():
+    ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0)
+    theta = torch.randn(2, 9, dtype=F64, generator=torch.Generator().manual_seed(0))
+    start = torch.zeros(3, dtype=F64)
+    first = ds.rollout(theta, start)
+    narrow = ds.rollout(theta.float(), start.float())
+    assert narrow.dtype == torch.float32 and ds.rollout(theta, start).dtype == F64
+    torch.testing.assert_close(narrow, first.float())
+    torch.testing.assert_close(ds.rollout(theta, start), first, rtol=0, atol=0)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_runs_on_cuda():
     ds = DSGMR(3, duration=1.0, dt=0.1, stiffness=10.0, device="cuda")
