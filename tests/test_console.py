@@ -38,6 +38,26 @@ def test_piped_output_is_a_line_every_tenth_of_the_budget(caplog):
     assert lines[-1].startswith("300 of 300 trials (100 %)")
 
 
+def test_piped_lines_for_an_odd_budget_a_resumed_run_and_a_batch_over_several_tenths(caplog):
+    caplog.set_level(logging.INFO, logger="train")
+    row = {"best_so_far": 1.0, "num_policies": 2}
+
+    def lines(total, start, batches):
+        caplog.clear()
+        progress, trials = Progress(total, start, stream=io.StringIO()), start
+        for batch in batches:
+            trials += batch
+            progress.update(trials, batch, row)
+        return [int(r.getMessage().split()[0]) for r in caplog.records]
+
+    # 19 trials: a line every round(1.9) = 2, and one at the budget.
+    assert lines(19, 0, [1] * 19) == [2, 4, 6, 8, 10, 12, 14, 16, 18, 19]
+    # Resumed at 160 of 300: the next line at the next tenth, 180, then at 210.
+    assert lines(300, 160, [10] * 6) == [180, 210]
+    # One batch over several tenths: one line, then the next tenth after it.
+    assert lines(100, 0, [35, 1, 1, 1, 1, 1, 10]) == [35, 40, 50]
+
+
 def test_a_terminal_gets_a_bar_and_messages_above_it():
     stream = Terminal()
     progress = Progress(100, 20, stream=stream)
