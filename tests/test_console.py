@@ -58,6 +58,16 @@ def test_piped_lines_for_an_odd_budget_a_resumed_run_and_a_batch_over_several_te
     assert lines(100, 0, [35, 1, 1, 1, 1, 1, 10]) == [35, 40, 50]
 
 
+def test_a_terminal_with_the_bar_turned_off_gets_lines(caplog):
+    caplog.set_level(logging.INFO, logger="train")
+    stream = Terminal()
+    progress = Progress(100, 0, enabled=False, stream=stream)
+    progress.update(10, 10, {"best_so_far": 1.0, "num_policies": 2})
+    progress.close()
+    assert stream.getvalue() == ""
+    assert caplog.records[0].getMessage().startswith("10 of 100 trials (10 %)")
+
+
 def test_a_terminal_gets_a_bar_and_messages_above_it():
     stream = Terminal()
     progress = Progress(100, 20, stream=stream)
