@@ -120,6 +120,18 @@ def test_on_noisy_returns_a_description_is_followed_by_the_mean_that_orders_it()
     ]
 
 
+def test_the_summary_of_no_policies_an_empty_set_line_and_repeats():
+    results = {"best_reward": 1.0, "trials": 100, "trial_budget": 100, "policies": []}
+    assert "; 0 policies (their means" in summary("dipole", "cone", results, "x")
+    # A task with policy-set scalars but no line on them adds no line.
+    quiet = results | {"policy_set": {"scalars": {"routes": 2.0}, "description": ""}}
+    assert summary("dipole", "cone", quiet, "x").splitlines()[1:] == ["outputs in x"]
+    repeats = {"best_evaluations": 8, "returns": "noisy", "best_reward_evaluations": 3}
+    lines = summary("dipole", "cone", results | {"repeats": repeats}, "x").splitlines()
+    assert lines[0].startswith("dipole on cone: best return 1 (the mean of 3) in 100 trials")
+    assert lines[1] == "returns noisy: each policy's best sample evaluated up to 8 times"
+
+
 def test_one_policy_is_one_policy_in_the_log_lines(caplog):
     caplog.set_level(logging.INFO, logger="train")
     progress = Progress(100, 0, stream=io.StringIO())
