@@ -461,6 +461,33 @@ def test_a_locked_run_directory_refuses_a_second_writer_until_released(tmp_path)
         pass
 
 
+def test_the_lock_file_records_its_holder_and_the_message_names_it(tmp_path, monkeypatch):
+    import fcntl
+    import socket
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ".lock").write_text("pid 4000000000 on a-host-with-a-much-longer-name-than-this\n")
+    with run_directory.lock_run_directory(run) as lock_file:  # a longer record is replaced
+        assert lock_file.read_text() == f"pid {os.getpid()} on {socket.gethostname()}\n"
+    # The same pid on another host (a run directory on a shared file system) is another process.
+    monkeypatch.setattr(socket, "gethostname", lambda: "elsewhere")
+    with run_directory.lock_run_directory(tmp_path / "shared"):
+        monkeypatch.undo()
+        with pytest.raises(run_directory.RunDirectoryLocked, match="another process"):
+            with run_directory.lock_run_directory(tmp_path / "shared"):
+                pass
+    # A holder that has not written its record yet is unknown.
+    fd = os.open(run / ".lock", os.O_RDWR | os.O_TRUNC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(run_directory.RunDirectoryLocked, match=r"\(holder unknown\)"):
+            with run_directory.lock_run_directory(run):
+                pass
+    finally:
+        os.close(fd)
+
+
 def test_a_run_directory_lock_dies_with_its_process(tmp_path):
     """A process killed with SIGKILL while it holds the lock leaves no stale lock."""
     run = tmp_path / "run"
