@@ -488,6 +488,11 @@ def test_the_lock_file_records_its_holder_and_the_message_names_it(tmp_path, mon
         os.close(fd)
 
 
+def test_a_run_directory_and_its_parents_are_created_for_the_lock(tmp_path):
+    with run_directory.lock_run_directory(tmp_path / "new" / "run") as lock_file:
+        assert lock_file == tmp_path / "new" / "run" / ".lock" and lock_file.exists()
+
+
 def test_a_run_directory_lock_dies_with_its_process(tmp_path):
     """A process killed with SIGKILL while it holds the lock leaves no stale lock."""
     run = tmp_path / "run"
