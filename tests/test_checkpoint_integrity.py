@@ -493,6 +493,16 @@ def test_a_run_directory_and_its_parents_are_created_for_the_lock(tmp_path):
         assert lock_file == tmp_path / "new" / "run" / ".lock" and lock_file.exists()
 
 
+def test_stale_temporaries_of_the_named_outputs_are_removed_and_nothing_else(tmp_path):
+    stale = [tmp_path / ".checkpoint.pt.a1b2.tmp", tmp_path / ".results.json.c3.tmp"]
+    kept = [tmp_path / "checkpoint.pt", tmp_path / ".other.json.d4.tmp", tmp_path / "x.tmp"]
+    for path in stale + kept:
+        path.write_text("x")
+    removed = run_directory.remove_stale_temporaries(tmp_path, ["checkpoint.pt", "results.json"])
+    assert sorted(removed) == sorted(stale)
+    assert not any(path.exists() for path in stale) and all(path.exists() for path in kept)
+
+
 def test_a_run_directory_lock_dies_with_its_process(tmp_path):
     """A process killed with SIGKILL while it holds the lock leaves no stale lock."""
     run = tmp_path / "run"
