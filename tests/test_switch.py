@@ -139,6 +139,60 @@ def test_the_block_sits_at_the_pass_time_where_the_other_good_route_differs(
     assert float(blocked.min()) < 0.1 and float(blocked.max()) >= 0.9
 
 
+def test_block_the_route_adds_the_obstacle_reevaluates_and_reports(task, routes):
+    """train.py's block (dipole_torch.training.block) on a stand-in optimizer holding three
+    route policies, on a task that already has an obstacle out of the way."""
+    from types import SimpleNamespace
+
+    from dipole_torch.training.block import block_the_route
+
+    class Optimizer:
+        def __init__(self, means):
+            self.policy_means, self.trials, self.told = means, 300, None
+            self.policy_set = SimpleNamespace(ids=torch.tensor([4, 7, 9]))
+
+        def reevaluate(self, returns):
+            self.told, self.trials = returns, self.trials + len(returns)
+
+    class Board:
+        def __init__(self):
+            self.figures, self.texts = [], []
+
+        def figure(self, tag, figure, step):
+            self.figures.append((tag, step))
+
+        def text(self, tag, text, step):
+            self.texts.append((tag, text, step))
+
+    thetas, _ = routes
+    means = thetas[[0, 3, 5]]
+    aside = {"centre": [0.0, 0.0, 1.5], "radius": 0.05}
+    world = task.with_obstacles([aside])
+    optimizer, board = Optimizer(means), Board()
+    block = SimpleNamespace(radius=0.08, threshold=0.9)
+    blocked, info = block_the_route(world, optimizer, block, board, torch.Generator())
+    obstacle, description = world.blocking_obstacle(means, 0.08, 0.9)
+    assert world.obstacles == [aside] and blocked.obstacles == [aside, obstacle]
+    returns = blocked.evaluate(means)
+    torch.testing.assert_close(optimizer.told, returns)
+    best_before = int(world.evaluate(means).argmax())
+    assert int(returns.argmax()) != best_before  # its route was blocked
+    assert info == {
+        "trial": 300,
+        "obstacle": obstacle,
+        "description": description,
+        "returns": returns.tolist(),
+        "switched_to": [4, 7, 9][int(returns.argmax())],
+    }
+    assert board.figures == [("world/before", 300), ("world/after", 303)]
+    ((tag, report, step),) = board.texts
+    assert tag == "world/block" and step == 303
+    assert report.startswith(f"block at 300 trials: {description}; the 3 stored policies ")
+    assert f"(now 303 trials), switching to policy {info['switched_to']}:" in report
+    assert "\nbefore the block: 3 of the 8 routes at return ≥ 0.9" in report
+    assert "\nafter it: 2 of the 8 routes at return ≥ 0.9" in report
+
+
 def test_dipole_switches_to_a_stored_route_within_k_trials():
     """The default DIPOLE (seed 3, 3 routes on the open layout, see test_viapoint): after 300
     trials its best route is blocked; re-evaluating its K stored policies (K trials, no
