@@ -154,6 +154,8 @@ def test_engine_choice():
         ({"force_limit": 0.0}, "force_limit"),
         ({"initial_angle": 1.0}, "initial_angle"),
         ({"theta0": [0.0, 1.0]}, "theta0"),
+        ({"steps": True}, "steps"),  # a bool is no count
+        ({"theta0": [[0.0, 0.0, 0.0, 0.0]]}, "theta0"),  # 4 numbers, but not a [4] vector
         ({"exploration_std": [1.0, -1.0, 1.0, 1.0]}, "exploration_std"),
     ],
 )
