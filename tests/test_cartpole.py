@@ -176,6 +176,13 @@ def test_bad_evaluate_inputs():
         task.evaluate(torch.zeros(2, 4), initial_state=torch.zeros(3, 4))
 
 
+def test_without_a_generator_every_episode_starts_from_the_default_seeds_draw():
+    task = CartPoleTask(default_seed=5)
+    start = task.sample_initial_state(1, torch.Generator().manual_seed(task.default_seed))
+    theta = torch.tensor([[0.5, 0.3, 8.0, 0.2], [0.0, 0.0, 0.0, 0.0]])
+    torch.testing.assert_close(task.evaluate(theta), task.evaluate(theta, initial_state=start[0]))
+
+
 def test_start_distribution_shapes():
     task = CartPoleTask()
     assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
