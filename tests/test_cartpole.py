@@ -183,6 +183,15 @@ def test_without_a_generator_every_episode_starts_from_the_default_seeds_draw():
     torch.testing.assert_close(task.evaluate(theta), task.evaluate(theta, initial_state=start[0]))
 
 
+def test_a_start_beyond_the_tasks_dtype_is_refused():
+    task = CartPoleTask()  # float32: 1e39 is beyond its range
+    with pytest.raises(ValueError, match="initial_state holds values beyond the task's"):
+        task.evaluate(
+            torch.zeros(1, 4),
+            initial_state=torch.tensor([0.0, 0.0, 1e39, 0.0], dtype=torch.float64),
+        )
+
+
 def test_start_distribution_shapes():
     task = CartPoleTask()
     assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
