@@ -192,6 +192,16 @@ def test_a_start_beyond_the_tasks_dtype_is_refused():
         )
 
 
+def test_a_rollout_leaves_the_thread_count_as_it_was():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        CartPoleTask(engine="torch", steps=5).evaluate(torch.zeros(3, 4))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(previous)
+
+
 def test_start_distribution_shapes():
     task = CartPoleTask()
     assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
