@@ -108,6 +108,7 @@ def test_noisy_returns_without_a_generator_are_the_same_each_time():
         ({"radius": math.nan}, "radius must be positive and finite"),
         ({"optima": [[math.nan, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]}, "non-finite"),
         ({"optima": [[0.0, 0.0]] * 3}, r"optima must have shape \[4, 2\], got \[3, 2\]"),
+        ({"optima": [[0.0, 0.0, 0.0]] * 4}, r"optima must have shape \[4, 2\], got \[4, 3\]"),
         ({"num_optima": 1}, "num_optima must be >= 2, got 1"),
         ({"dim": 6}, r"dim must be in \[2, 5\], got 6"),
         ({"width": 0.0}, "width must be positive and finite, got 0.0"),
