@@ -97,6 +97,9 @@ def test_noisy_returns_without_a_generator_are_the_same_each_time():
     g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
     assert torch.equal(task.evaluate(theta, g1), task.evaluate(theta, g2))
     assert not torch.equal(task.evaluate(theta, g1), task.evaluate(theta, g1))
+    # The fixed default is the seed default_seed (0).
+    seeded = torch.Generator().manual_seed(task.default_seed)
+    assert torch.equal(task.evaluate(theta), task.evaluate(theta, seeded))
 
 
 @pytest.mark.parametrize(
