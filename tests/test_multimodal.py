@@ -72,6 +72,13 @@ def test_the_optima_the_policies_find_together():
     assert lines[0] == f"optimum 2, return {math.exp(-0.005):.4g}"
 
 
+def test_the_optima_found_are_listed_in_order_whatever_the_policies_order():
+    task = MultimodalTask(dim=2, num_optima=10)
+    policies = task.optima[[9, 1]]
+    assert task.optima_found(policies) == [1, 9]
+    assert task.describe_policy_set(policies) == "2 of the 10 optima at return ≥ 0.99: 1, 9"
+
+
 def test_the_optima_sit_on_the_circle_of_the_radius_and_returns_in_0_1():
     """The optima are evenly spread on the circle of ``radius`` in the first two coordinates
     (the first at 45° for 4 of them), Σ_start is ``exploration_std``² I, and noisy returns
