@@ -10,7 +10,7 @@ import pytest
 import torch
 from dipole_torch.models.kinematics import ArmKinematics
 from dipole_torch.models.numpy_kinematics import NumpyChain
-from dipole_torch.models.tracking import track_path
+from dipole_torch.models.tracking import solve_position_ik, track_path
 from dipole_torch.tasks.viapoint import ViapointTask
 
 F64 = torch.float64
@@ -390,3 +390,25 @@ def test_numpy_inverse_kinematics_reaches_reachable_points(urdf_path):
     assert distances[:-1].max() < 1e-6 and distances[-1] >= 1.5 - 0.85 - 1e-9
     assert bool(((q >= lower) & (q <= upper)).all())
     np.testing.assert_allclose(chain.forward_kinematics(q)[:-1], points[:-1], atol=1e-6)
+
+
+def test_position_ik_keeps_to_the_joint_limits_and_to_its_tolerance():
+    from dipole_torch.models.wam import WamKinematics
+
+    wam = WamKinematics(dtype=F64)
+    guess = torch.tensor([0.0, 0.6, 0.0, 1.6, 0.0, 0.0, 0.0], dtype=F64)
+    # A point the arm reaches with its base joint at 0.8 rad, beyond a ±0.05 rad limit.
+    beyond = guess.clone()
+    beyond[0] = 0.8
+    target = wam.forward_kinematics(beyond[None])[0]
+    lower, upper = wam.joint_lower.tolist(), wam.joint_upper.tolist()
+    lower[0], upper[0] = -0.05, 0.05
+    narrow = WamKinematics(joint_lower=lower, joint_upper=upper, dtype=F64)
+    with pytest.raises(ValueError, match="inverse kinematics did not reach"):
+        solve_position_ik(narrow, target, guess)
+    # One iteration towards a point 1 mm away leaves 2.4e-6 m: within 5e-6, not 1.5e-6.
+    near = wam.forward_kinematics(guess[None])[0] + torch.tensor([1e-3, 0.0, 0.0], dtype=F64)
+    with pytest.raises(ValueError, match=r"residual 2\.36e-06 m"):
+        solve_position_ik(wam, near, guess, iterations=1, tolerance=1.5e-6)
+    q = solve_position_ik(wam, near, guess, iterations=1, tolerance=5e-6)
+    assert float((wam.forward_kinematics(q[None])[0] - near).norm()) < 5e-6
