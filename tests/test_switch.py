@@ -103,6 +103,19 @@ def test_obstacles_from_the_config_and_bad_obstacles():
     assert task.obstacles == [{"centre": [0.4, 0.06, 0.0], "radius": 0.05}]  # unchanged
 
 
+def test_obstacles_with_other_keys_no_size_a_nested_centre_or_on_the_start_are_refused(task):
+    good = {"centre": [0.4, 0.06, 0.0], "radius": 0.05}
+    for bad, message in (
+        ({**good, "colour": "red"}, r"obstacles\[0\] must be \{'centre'"),
+        ({**good, "radius": 0}, r"obstacles\[0\]\.radius must be a positive number, got 0"),
+        ({**good, "centre": [[0.4, 0.06, 0.0]]}, r"obstacles\[0\]\.centre must be a finite"),
+        # A sphere whose surface passes through the start, (0.5, -0.35, 0), holds it.
+        ({"centre": [0.75, -0.35, 0.0], "radius": 0.25}, r"obstacles\[0\].*holds the start"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            task.with_obstacles([bad])
+
+
 def test_the_block_keeps_the_other_good_routes_open(task, routes):
     thetas, route_list = routes
     pick = [route_list.index(r) for r in [(0, 0, 1), (0, 1, 1), (1, 1, 1)]]
