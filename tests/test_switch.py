@@ -116,6 +116,13 @@ def test_obstacles_with_other_keys_no_size_a_nested_centre_or_on_the_start_are_r
             task.with_obstacles([bad])
 
 
+def test_editing_the_obstacles_a_task_returns_leaves_the_task_be(task):
+    blocked = task.with_obstacles([{"centre": [0.4, 0.06, 0.0], "radius": 0.05}])
+    blocked.obstacles[0]["radius"] = 1.0
+    blocked.obstacles.append({"centre": [0.0, 0.0, 0.0], "radius": 0.1})
+    assert blocked.obstacles == [{"centre": [0.4, 0.06, 0.0], "radius": 0.05}]
+
+
 def test_the_block_keeps_the_other_good_routes_open(task, routes):
     thetas, route_list = routes
     pick = [route_list.index(r) for r in [(0, 0, 1), (0, 1, 1), (1, 1, 1)]]
