@@ -265,6 +265,16 @@ def test_points_inverse_kinematics_does_not_reach_warn():
         ViapointTask(target=[0.0, 0.0, 0.05])
 
 
+def test_alternatives_on_one_side_are_told_apart_by_their_index(dh_task):
+    # At t = 1.2 s, a third alternative near the shoulder: two of three are "near".
+    layout = [[list(p) for p in pass_time] for pass_time in dh_task.viapoints.tolist()]
+    layout[1].append([0.45, 0.06, 0.0])
+    task = ViapointTask(dtype=F64, kinematics="wam_dh", viapoints=layout)
+    assert task.alternative_names[1] == ["near0", "far1", "near2"]
+    assert task.alternative_names[0] == ["below", "above"]
+    assert task.route_name([1, 2, 0]) == "above / near2 / below"
+
+
 def test_input_errors_name_the_argument_and_the_joint():
     ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
     ragged[1][1] = [0.6, 0.06]
