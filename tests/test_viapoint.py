@@ -275,6 +275,12 @@ def test_alternatives_on_one_side_are_told_apart_by_their_index(dh_task):
     assert task.route_name([1, 2, 0]) == "above / near2 / below"
 
 
+def test_a_route_at_the_threshold_return_exactly_is_found(dh_task):
+    thetas, routes = route_policies(dh_task)
+    value = float(dh_task.evaluate(thetas[:1])[0])
+    assert dh_task.routes_found(thetas[:1], threshold=value) == [routes[0]]
+
+
 def test_input_errors_name_the_argument_and_the_joint():
     ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
     ragged[1][1] = [0.6, 0.06]
