@@ -281,6 +281,11 @@ def test_a_route_at_the_threshold_return_exactly_is_found(dh_task):
     assert dh_task.routes_found(thetas[:1], threshold=value) == [routes[0]]
 
 
+def test_a_pass_time_without_alternatives_is_refused(dh_task):
+    with pytest.raises(ValueError, match=r"viapoints\[1\] must be a list of alternatives"):
+        ViapointTask(viapoints=[[[0.5, -0.29, 0.1]], [], [[0.5, 0.34, 0.1]]])
+
+
 def test_input_errors_name_the_argument_and_the_joint():
     ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
     ragged[1][1] = [0.6, 0.06]
