@@ -286,6 +286,11 @@ def test_a_pass_time_without_alternatives_is_refused(dh_task):
         ViapointTask(viapoints=[[[0.5, -0.29, 0.1]], [], [[0.5, 0.34, 0.1]]])
 
 
+def test_the_analytic_wam_takes_its_own_base_link_by_name():
+    named = ViapointTask(dtype=F64, kinematics="wam_dh", base_link="wam_base")
+    torch.testing.assert_close(named.q_start, ViapointTask(dtype=F64, kinematics="wam_dh").q_start)
+
+
 def test_input_errors_name_the_argument_and_the_joint():
     ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
     ragged[1][1] = [0.6, 0.06]
