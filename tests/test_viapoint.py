@@ -291,6 +291,12 @@ def test_the_analytic_wam_takes_its_own_base_link_by_name():
     torch.testing.assert_close(named.q_start, ViapointTask(dtype=F64, kinematics="wam_dh").q_start)
 
 
+def test_a_point_inverse_kinematics_misses_by_millimetres_warns():
+    # The warning's bound is 1 mm: 21 cm above the shoulder, IK ends about 5 mm short.
+    with pytest.warns(UserWarning, match=r"target \[0, 0, 0\.21\] .* ends 0\.\d cm from it"):
+        ViapointTask(dtype=F64, kinematics="wam_dh", target=[0.0, 0.0, 0.21])
+
+
 def test_input_errors_name_the_argument_and_the_joint():
     ragged = copy.deepcopy(DEFAULT_VIAPOINTS)
     ragged[1][1] = [0.6, 0.06]
