@@ -202,6 +202,14 @@ def test_a_rollout_leaves_the_thread_count_as_it_was():
         torch.set_num_threads(previous)
 
 
+def test_a_task_that_describes_nothing_gives_one_empty_line_per_policy():
+    # EpisodicTask's defaults, which results.json's policies index by policy.
+    task, theta = CartPoleTask(), torch.zeros(3, 4)
+    assert task.describe_policies(theta) == ["", "", ""]
+    assert task.policy_scalars(theta) == {} and task.describe_policy_set(theta) == ""
+    assert task.plot_policies(theta) is None
+
+
 def test_start_distribution_shapes():
     task = CartPoleTask()
     assert task.theta0.shape == (4,) and task.sigma_start.shape == (4, 4)
