@@ -428,6 +428,39 @@ def figure_layout_problems(figure, margins: bool = True) -> list[str]:
     return problems
 
 
+def test_policy_figure_legend_colours_title_and_view(dh_task):
+    """The legend in two columns, paths left and the points right (one entry for all the
+    obstacles), a colour a path, the start and target stars where they are, the title."""
+    matplotlib = pytest.importorskip("matplotlib.pyplot")
+    thetas, _ = route_policies(dh_task)
+    spheres = [
+        {"centre": [0.6, 0.06, 0.0], "radius": 0.05},
+        {"centre": [0.0, 0.0, 1.5], "radius": 0.1},
+    ]
+    blocked = dh_task.with_obstacles(spheres)
+    figure = blocked.plot_policies(thetas[[0, 3]], labels=["one", "two"])
+    ax = figure.axes[0]
+    texts = [t.get_text() for t in ax.get_legend().get_texts()]
+    points = ["via t = 0.4 s", "via t = 1.2 s", "via t = 2 s", "obstacle", "start", "target"]
+    assert texts == ["one", "two", " ", " ", " ", " ", *points]  # 6 rows, 2 columns
+    assert ax.lines[0].get_color() != ax.lines[1].get_color()
+    assert ax.get_title() == "WAM end-effector paths of 2 policies"
+    assert (ax.elev, ax.azim) == (20, -35)
+    stars = {c.get_label(): c for c in ax.collections}
+    stars = {name: np.ravel(stars[name]._offsets3d) for name in ("start", "target")}
+    np.testing.assert_allclose(stars["start"], blocked.start.numpy())
+    np.testing.assert_allclose(stars["target"], blocked.target.numpy())
+    matplotlib.close(figure)
+    one = dh_task.plot_policies(thetas[:1], title="a title")
+    assert one.axes[0].get_title() == "a title"
+    matplotlib.close(one)
+    one = dh_task.plot_policies(thetas[:1])
+    assert one.axes[0].get_title() == "WAM end-effector paths of 1 policy"
+    matplotlib.close(one)
+    with pytest.raises(ValueError, match=r"labels must give one entry per policy \(2\)"):
+        dh_task.plot_policies(thetas[:2], labels=["one"])
+
+
 def test_policy_figure_is_legible_at_tensorboard_card_size(task):
     """As TensorBoard's add_figure renders it (the canvas at the figure's dpi), on the
     default layout with an obstacle and on a layout whose box is tall and narrow (which
