@@ -412,3 +412,17 @@ def test_position_ik_keeps_to_the_joint_limits_and_to_its_tolerance():
         solve_position_ik(wam, near, guess, iterations=1, tolerance=1.5e-6)
     q = solve_position_ik(wam, near, guess, iterations=1, tolerance=5e-6)
     assert float((wam.forward_kinematics(q[None])[0] - near).norm()) < 5e-6
+
+
+def test_reach_counts_a_prismatic_joints_longest_travel_either_way(tmp_path):
+    path = tmp_path / "mixed.urdf"
+    path.write_text(MIXED_URDF)
+    arm = ArmKinematics(path, "tip", dtype=F64)
+    chain = NumpyChain(arm.chain, arm.base_link)
+    lower, upper = arm.joint_lower.numpy().copy(), arm.joint_upper.numpy().copy()
+    assert (lower[1], upper[1]) == (-0.5, 0.5)  # j1, the prismatic joint
+    _, radius = chain.reach(lower, upper)
+    upper[1] = 0.2  # 0.5 m of travel on the negative side only
+    assert chain.reach(lower, upper)[1] == pytest.approx(radius, abs=1e-12)
+    lower[1], upper[1] = -0.1, 0.2
+    assert chain.reach(lower, upper)[1] == pytest.approx(radius - 0.3, abs=1e-12)
