@@ -426,3 +426,9 @@ def test_reach_counts_a_prismatic_joints_longest_travel_either_way(tmp_path):
     assert chain.reach(lower, upper)[1] == pytest.approx(radius, abs=1e-12)
     lower[1], upper[1] = -0.1, 0.2
     assert chain.reach(lower, upper)[1] == pytest.approx(radius - 0.3, abs=1e-12)
+
+
+def test_a_numpy_chain_from_a_link_not_in_the_chain_is_refused(urdf_path):
+    arm = ArmKinematics(urdf_path, "tool", dtype=F64)
+    with pytest.raises(ValueError, match="base_link 'nowhere' is not a frame of the chain"):
+        NumpyChain(arm.chain, "nowhere")
