@@ -432,3 +432,12 @@ def test_a_numpy_chain_from_a_link_not_in_the_chain_is_refused(urdf_path):
     arm = ArmKinematics(urdf_path, "tool", dtype=F64)
     with pytest.raises(ValueError, match="base_link 'nowhere' is not a frame of the chain"):
         NumpyChain(arm.chain, "nowhere")
+
+
+def test_editing_the_centre_reach_returns_leaves_the_chain_be(urdf_path):
+    arm = ArmKinematics(urdf_path, "tool", dtype=F64)
+    chain = NumpyChain(arm.chain, arm.base_link)
+    limits = arm.joint_lower.numpy(), arm.joint_upper.numpy()
+    centre, _ = chain.reach(*limits)
+    centre += 1.0
+    np.testing.assert_allclose(chain.reach(*limits)[0], [0.0, 0.0, 0.3], atol=1e-7)
