@@ -441,3 +441,19 @@ def test_editing_the_centre_reach_returns_leaves_the_chain_be(urdf_path):
     centre, _ = chain.reach(*limits)
     centre += 1.0
     np.testing.assert_allclose(chain.reach(*limits)[0], [0.0, 0.0, 0.3], atol=1e-7)
+
+
+def test_numpy_inverse_kinematics_starts_from_the_guess_within_the_limits(urdf_path):
+    arm = ArmKinematics(urdf_path, "tool", dtype=F64)
+    lower, upper = arm.joint_lower.numpy(), arm.joint_upper.numpy()
+    chain = NumpyChain(arm.chain, arm.base_link)
+    points = chain.forward_kinematics(np.array([[0.5, 0.3, 1.0, 0.2]]))
+    beyond = upper + 1.0  # every limited joint 1 past its upper limit
+    beyond[~np.isfinite(beyond)] = 0.0  # (the unlimited yaw at 0)
+    clipped = np.clip(beyond, lower, upper)
+    for iterations in (0, 1, 5):
+        from_beyond = chain.inverse_kinematics(points, beyond, lower, upper, iterations=iterations)
+        from_clipped = chain.inverse_kinematics(
+            points, clipped, lower, upper, iterations=iterations
+        )
+        np.testing.assert_array_equal(from_beyond[0], from_clipped[0])
