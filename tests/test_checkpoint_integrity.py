@@ -461,6 +461,28 @@ def test_a_locked_run_directory_refuses_a_second_writer_until_released(tmp_path)
         pass
 
 
+def test_the_end_of_the_block_releases_the_lock_for_a_child_forked_inside_it(tmp_path):
+    # In an interpreter of its own (os.fork of this multi-threaded one may deadlock): the
+    # child outlives the block, and the directory can be locked again at once.
+    script = (
+        "import os, sys, time\n"
+        "from dipole_torch.training.run_directory import lock_run_directory\n"
+        "with lock_run_directory(sys.argv[1]):\n"
+        "    child = os.fork()\n"
+        "    if child == 0:\n"
+        "        time.sleep(5)\n"
+        "        os._exit(0)\n"
+        "with lock_run_directory(sys.argv[1]):\n"
+        "    print('locked again', flush=True)\n"
+        "os.kill(child, 9)\n"
+        "os.waitpid(child, 0)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "run")], capture_output=True, text=True
+    )
+    assert done.stdout == "locked again\n", done.stderr[-500:]
+
+
 def test_the_lock_file_records_its_holder_and_the_message_names_it(tmp_path, monkeypatch):
     import fcntl
     import socket

@@ -56,7 +56,8 @@ def lock_run_directory(directory: str | os.PathLike, name: str = ".lock") -> Ite
 
     A lock belongs to an open file, not to a process: a second ``lock_run_directory`` of the
     same directory fails in the same process too, and a child forked inside the block shares
-    the lock (it stays held until the parent and such children have all let go).
+    the lock, which the block's end releases for the child too (a child left running cannot
+    keep the directory locked).
 
     Yields:
         The lock file's path.
@@ -94,8 +95,8 @@ def lock_run_directory(directory: str | os.PathLike, name: str = ".lock") -> Ite
                 ) from None
             raise RunDirectoryLocked(
                 f"run directory {str(directory)!r} is locked: another process ({holder}) is "
-                "writing it. Wait for that run to end, or stop it, before resuming it; the "
-                f"lock ({str(lock_path)!r}) ends with its process."
+                "writing it. Wait for that run to end, or stop it, before running in that "
+                f"directory; the lock ({str(lock_path)!r}) ends with its process."
             ) from None
         os.ftruncate(fd, 0)
         os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
