@@ -110,6 +110,19 @@ def test_exploration_factors_stand_in_the_identity_where_a_covariance_does_not_f
     assert torch.equal(factors[1], torch.eye(2, dtype=F64))
 
 
+def test_the_exploration_factors_are_recomputed_once_written_into():
+    # A memoised tuple of tensors is watched as a tensor is: a write into one of them costs a
+    # recomputation, never a stale value (Memo's contract).
+    policies = PolicySet(torch.zeros(2, 2, dtype=F64), torch.eye(2, dtype=F64).repeat(2, 1, 1))
+    factors, ok = policies.exploration_factors()
+    assert policies.exploration_factors()[0] is factors  # a hit
+    factors[0, 0, 0] = 9.0
+    ok[1] = False
+    again, ok_again = policies.exploration_factors()
+    assert torch.equal(again, torch.eye(2, dtype=F64).repeat(2, 1, 1))
+    assert ok_again.tolist() == [True, True]
+
+
 def test_the_archive_keeps_owners_with_their_samples():
     archive = SampleArchive(1, torch.device("cpu"))
     archive.append(
