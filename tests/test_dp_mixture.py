@@ -10,7 +10,7 @@ from sklearn.metrics import adjusted_rand_score
 from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
 from dipole_torch.dp import neal8, posterior_point_estimate, reward_weights
 from dipole_torch.dp import reuse as dp_reuse
-from dipole_torch.gaussian import log_prob_tril
+from dipole_torch.gaussian import log_prob_tril, symmetric
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.sampling import draw_categorical
 
@@ -619,6 +619,14 @@ def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
     mu = torch.randn(mean, generator=g, dtype=F64)
     expected = torch.distributions.MultivariateNormal(mu, scale_tril=tril).log_prob(v)
     torch.testing.assert_close(log_prob_tril(v, mu, tril), expected)
+
+
+def test_symmetric_averages_a_matrix_with_its_transpose():
+    # (H's drawn scale Ψ0 goes through it: products that BLAS rounds unevenly come out
+    # exactly symmetric.)
+    a = torch.tensor([[[1.0, 2.0], [4.0, 3.0]], [[0.0, -1.0], [1.0, 5.0]]], dtype=F64)
+    expected = torch.tensor([[[1.0, 3.0], [3.0, 3.0]], [[0.0, 0.0], [0.0, 5.0]]], dtype=F64)
+    assert torch.equal(symmetric(a), expected)
 
 
 @pytest.mark.parametrize("method", ["neal8", "slice"])
