@@ -647,6 +647,31 @@ def test_a_signal_writes_a_checkpoint_and_prints_the_resume_command(driver_repor
     assert stop["identical"] == {"results": True, "policies": True, "checkpoint": True}
 
 
+def test_stop_request_takes_sigterm_and_sigint_then_gives_the_handlers_back(capfd):
+    # (The driver's runs see the exit codes; this sees each signal's own name and that the
+    # handlers the run found are put back.)
+    from dipole_torch.training.signals import StopRequest
+
+    elsewhere = []  # the handlers found: a signal the request missed lands here
+
+    def found(signum, frame):
+        elsewhere.append(signum)
+
+    previous = {s: signal.signal(s, found) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            with StopRequest() as stop:
+                assert not stop and stop.name == ""
+                signal.raise_signal(signum)
+                assert stop and stop.signum == signum and stop.name == signum.name
+            assert signal.getsignal(signal.SIGTERM) is signal.getsignal(signal.SIGINT) is found
+            assert f"{signum.name} received: finishing this iteration" in capfd.readouterr().err
+        assert elsewhere == []
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
 # ------------------------------------------------------------------ the driver process
 def _fork_train(train, args, log, slow_disk=False):
     """Run ``train.main()`` with ``args`` in a forked child; return its pid. ``slow_disk``:
