@@ -672,6 +672,24 @@ def test_stop_request_takes_sigterm_and_sigint_then_gives_the_handlers_back(capf
             signal.signal(signum, handler)
 
 
+def test_stop_request_outside_the_main_thread_is_no_failure():
+    # (A threaded Hydra launcher runs the loop in a thread, where no handler can be set.)
+    import threading
+
+    from dipole_torch.training.signals import StopRequest
+
+    asked = []
+
+    def loop():
+        with StopRequest() as stop:
+            asked.append(bool(stop))
+
+    thread = threading.Thread(target=loop)
+    thread.start()
+    thread.join()
+    assert asked == [False]
+
+
 # ------------------------------------------------------------------ the driver process
 def _fork_train(train, args, log, slow_disk=False):
     """Run ``train.main()`` with ``args`` in a forked child; return its pid. ``slow_disk``:
