@@ -690,6 +690,24 @@ def test_stop_request_outside_the_main_thread_is_no_failure():
     assert asked == [False]
 
 
+def test_a_second_stop_asked_exits_at_once_with_its_status():
+    code = (
+        "import signal\n"
+        "from dipole_torch.training.signals import StopRequest\n"
+        "with StopRequest():\n"
+        "    signal.raise_signal(signal.SIGINT)\n"
+        "    print('first signal: going on', flush=True)\n"
+        "    signal.raise_signal(signal.SIGINT)\n"
+        "    print('not stopped')\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 128 + signal.SIGINT, result.stderr
+    assert result.stdout.split() == ["first", "signal:", "going", "on"]
+    assert "second SIGINT: stopping now" in result.stderr and "Traceback" not in result.stderr
+
+
 # ------------------------------------------------------------------ the driver process
 def _fork_train(train, args, log, slow_disk=False):
     """Run ``train.main()`` with ``args`` in a forked child; return its pid. ``slow_disk``:
