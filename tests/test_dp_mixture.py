@@ -621,6 +621,17 @@ def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
     torch.testing.assert_close(log_prob_tril(v, mu, tril), expected)
 
 
+def test_log_prob_from_factors_takes_a_number_as_the_mean():
+    # (0.0 takes the value as centred, without the subtraction; any other number is subtracted.)
+    tril = torch.tensor([[2.0, 0.0], [0.5, 1.0]], dtype=F64)
+    v = torch.tensor([[1.0, -1.0], [0.3, 2.0]], dtype=F64)
+    for mean in (0.0, 1.5):
+        expected = torch.distributions.MultivariateNormal(
+            torch.full((2,), mean, dtype=F64), scale_tril=tril
+        ).log_prob(v)
+        torch.testing.assert_close(log_prob_tril(v, mean, tril), expected)
+
+
 def test_symmetric_averages_a_matrix_with_its_transpose():
     # (H's drawn scale Ψ0 goes through it: products that BLAS rounds unevenly come out
     # exactly symmetric.)
