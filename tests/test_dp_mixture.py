@@ -607,6 +607,8 @@ def test_reuse_pass_is_the_same_whatever_the_pool_block(monkeypatch):
         ((5, 4, 3), (5, 4, 3), (5, 4)),  # one factor per point and slot: [C, m]
         ((6, 3), (3,), ()),  # one component, all points: [N]
         ((2, 5, 4, 3), (4, 3), (4,)),  # GMR queries [C, m] against K components
+        ((7, 1, 3), (1, 3), (4,)),  # the points broadcast against the factors
+        ((5, 4, 3), (4, 3), (1,)),  # one factor broadcast against the points
     ],
 )
 def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
