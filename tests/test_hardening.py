@@ -460,6 +460,20 @@ def test_settings_that_differ_by_rounding_alone_still_load():
     Dipole(torch.ones(2, dtype=F64), 1.0).load_state_dict(state)
 
 
+def test_a_state_saved_with_a_box_open_on_every_side_loads_into_the_same_optimizer():
+    # The box [2, D] is then all ±inf: no finite entry to compare, and equal.
+    def make():
+        return Dipole(torch.zeros(2, dtype=F64), 1.0, bounds=(-math.inf, math.inf),
+                      generator=torch.Generator().manual_seed(0))  # fmt: skip
+
+    saved = make()
+    theta = saved.ask()
+    saved.tell(theta, quadratic(theta))
+    opt = make()
+    opt.load_state_dict(saved.state_dict())
+    assert torch.equal(opt.ask(), saved.ask())
+
+
 def test_a_checkpoint_round_trip_continues_identically():
     # (The refusals above must not cost the plain case: load, then the same draws.)
     opt = build("dipole")
