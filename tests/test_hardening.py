@@ -451,6 +451,8 @@ def test_settings_that_differ_by_rounding_alone_still_load():
     opt = Dipole(theta0 + 1e-9, 1.0 + 1e-12)
     opt.load_state_dict(state)
     assert torch.equal(opt.ask(), saved.ask())
+    with pytest.raises(ValueError, match="theta0: "):  # 1e-4 is no rounding
+        Dipole(theta0 + 1e-4, 1.0).load_state_dict(state)
     # A state saved before an option existed lacks it: the others are compared.
     del state["settings"]["coverage_from"]
     Dipole(theta0, 1.0, coverage_from=None).load_state_dict(state)
