@@ -453,8 +453,10 @@ def test_settings_that_differ_by_rounding_alone_still_load():
     assert torch.equal(opt.ask(), saved.ask())
     with pytest.raises(ValueError, match="theta0: "):  # 1e-4 is no rounding
         Dipole(theta0 + 1e-4, 1.0).load_state_dict(state)
-    # A state saved before an option existed lacks it: the others are compared.
+    # A state saved before an option existed lacks it, one saved after an option was removed
+    # has it: the others are compared.
     del state["settings"]["coverage_from"]
+    state["settings"]["an_option_since_removed"] = 1
     Dipole(theta0, 1.0, coverage_from=None).load_state_dict(state)
     with pytest.raises(ValueError, match="max_sampled: 4 saved, 2 here"):
         Dipole(theta0, 1.0, max_sampled=2).load_state_dict(state)
