@@ -10,7 +10,7 @@ from sklearn.metrics import adjusted_rand_score
 from dipole_torch import DPMixtureState, DPSampler, NormalInverseWishartPrior
 from dipole_torch.dp import neal8, posterior_point_estimate, reward_weights
 from dipole_torch.dp import reuse as dp_reuse
-from dipole_torch.gaussian import log_prob_tril, symmetric
+from dipole_torch.gaussian import gaussian_log_prob, log_prob_tril, symmetric
 from dipole_torch.gaussian_mixture import GaussianMixture
 from dipole_torch.sampling import draw_categorical
 
@@ -621,6 +621,15 @@ def test_log_prob_from_factors_matches_multivariate_normal(value, mean, batch):
     mu = torch.randn(mean, generator=g, dtype=F64)
     expected = torch.distributions.MultivariateNormal(mu, scale_tril=tril).log_prob(v)
     torch.testing.assert_close(log_prob_tril(v, mu, tril), expected)
+
+
+def test_log_prob_from_covariances_matches_multivariate_normal():
+    # (The sequential CRP start's new-component likelihood: H's predictive, correlated.)
+    covariances = torch.tensor([[[2.0, 0.9], [0.9, 1.0]], [[1.0, -0.5], [-0.5, 3.0]]], dtype=F64)
+    means = torch.tensor([[0.5, -1.0], [1.0, 2.0]], dtype=F64)
+    v = torch.tensor([[[1.0, -1.0]], [[0.3, 2.0]], [[-2.0, 0.5]]], dtype=F64)  # [3, 1, 2]
+    expected = torch.distributions.MultivariateNormal(means, covariances).log_prob(v)
+    torch.testing.assert_close(gaussian_log_prob(v, means, covariances), expected)
 
 
 def test_log_prob_from_factors_takes_a_number_as_the_mean():
