@@ -550,6 +550,39 @@ def test_more_bad_config_values(override, message):
     assert message in str(error.value)
 
 
+def composed(*overrides):
+    """``configs/config.yaml`` composed with ``overrides``, as train.py composes it."""
+    from hydra import compose, initialize_config_dir
+
+    from dipole_torch.training.config import register
+    from dipole_torch.training.hydra_compat import VERSION_BASE
+
+    register()
+    with initialize_config_dir(str(ROOT / "configs"), **VERSION_BASE):
+        return compose("config", overrides=list(overrides))
+
+
+def test_values_at_their_limits_are_accepted_and_one_past_them_refused():
+    from dipole_torch.training.checks import SEED_LIMIT, check_config
+
+    cores = os.cpu_count() or 1
+    limits = [  # (override, one past it, what the refusal says)
+        (f"seed={SEED_LIMIT - 1}", f"seed={SEED_LIMIT}", f"seed must be below {SEED_LIMIT}"),
+        (f"threads={4 * cores}", f"threads={4 * cores + 1}", "more than 4 times"),
+        ("trials=10", "trials=9", "trials=9 is below task.n0=10"),  # n0 = 10 trials at least
+    ]
+    for at, past, message in limits:
+        check_config(composed(at))
+        with pytest.raises(ValueError, match=message):
+            check_config(composed(past))
+    # The world may change right after the first batch (task.n0 = 30 trials).
+    check_config(composed("task=viapoint_blocked", "task.block.trial=30"))
+    with pytest.raises(ValueError, match="task.block.trial=29 is below task.n0=30"):
+        check_config(composed("task=viapoint_blocked", "task.block.trial=29"))
+    # A resumed run's budget is not held to n0: its first batch was told long ago.
+    check_config(composed("resume=/a/run/checkpoint.pt", "trials=9"))
+
+
 # ------------------------------------------------------------------ in-process train.py
 def run_train(*overrides):
     """``python train.py <overrides>`` in this process (exceptions propagate)."""
