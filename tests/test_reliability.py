@@ -583,6 +583,21 @@ def test_values_at_their_limits_are_accepted_and_one_past_them_refused():
     check_config(composed("resume=/a/run/checkpoint.pt", "trials=9"))
 
 
+def test_a_misspelt_name_gets_a_guess_only_where_one_is_close():
+    from dipole_torch.training.checks import check_config
+
+    said = {}
+    for override in ("+thread_count=2", "+algo.optimizer.alpah=2", "+optimizer=power"):
+        with pytest.raises(ValueError) as refused:
+            check_config(composed(override))
+        said[override] = str(refused.value)
+    assert "(a misspelling? python train.py --help" in said["+thread_count=2"]
+    assert "did you mean" not in said["+thread_count=2"]
+    # The word on choosing a task or an optimizer only where the guess is a section of one.
+    assert "(did you mean algo.optimizer.alpha? python train.py" in said["+algo.optimizer.alpah=2"]
+    assert "did you mean algo.optimizer? task=<name> and algo=<name>" in said["+optimizer=power"]
+
+
 # ------------------------------------------------------------------ in-process train.py
 def run_train(*overrides):
     """``python train.py <overrides>`` in this process (exceptions propagate)."""
