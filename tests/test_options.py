@@ -157,6 +157,14 @@ def test_each_option_is_checked_once_naming_it(changes, error, message):
         Dipole(torch.zeros(2), 1.0, **changes)
 
 
+def test_prior_df_must_exceed_d_plus_2_which_the_optimizer_checks_knowing_d():
+    # (D + 2 itself is refused: the weakest inverse-Wishart prior with a finite mean has
+    # ν0 > p + 1 for the p = D + 1 dimensions of [θ, w].)
+    with pytest.raises(ValueError, match=r"prior_df must exceed D \+ 2 = 4, got 4.0"):
+        Dipole(torch.zeros(2), 1.0, prior_df=4.0)
+    assert Dipole(torch.zeros(2), 1.0, prior_df=4.001).prior_df == 4.001
+
+
 @pytest.mark.parametrize(
     "changes",
     [
