@@ -207,6 +207,16 @@ def test_both_variants_take_the_papers_constants():
     assert Dipole(torch.zeros(2), 1.0).n0 == 10  # 2M first samples
 
 
+def test_the_defaults_that_follow_d_and_m_are_the_documented_ones():
+    # ν0 = D + 3 (the weakest inverse-Wishart prior on [θ, w] with a finite mean) and a
+    # clustering every M iterations, for both variants; an option given overrides each.
+    for make in (Dipole, Dipole.paper):
+        opt = make(torch.zeros(3), 1.0, M=4)
+        assert (opt.prior_df, opt.cluster_every, opt.n0) == (6.0, 4, 8)
+    opt = Dipole(torch.zeros(3), 1.0, prior_df=7.5, cluster_every=2)
+    assert (opt.prior_df, opt.cluster_every) == (7.5, 2)
+
+
 def test_the_papers_set_and_a_checked_copy():
     paper = DipoleOptions.paper()
     assert all(getattr(paper, key) == value for key, value in PAPER.items())
