@@ -598,6 +598,28 @@ def test_a_misspelt_name_gets_a_guess_only_where_one_is_close():
     assert "did you mean algo.optimizer? task=<name> and algo=<name>" in said["+optimizer=power"]
 
 
+def test_reported_makes_a_constructors_refusal_one_line_and_lets_a_bug_through(capsys, monkeypatch):
+    from hydra.errors import InstantiationException
+
+    from dipole_torch.training.checks import reported
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    # A constructor's refusal in a named node: its first line, after the node; status 2.
+    with pytest.raises(SystemExit) as stopped, reported("task.env"):
+        raise ValueError("width must be positive, got -1\n  (more on the width)")
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err.strip() == (
+        "error: task.env: width must be positive, got -1 (HYDRA_FULL_ERROR=1 for the traceback)"
+    )
+    # A file the constructor cannot find, reaching train.py through Hydra's wrapper.
+    with pytest.raises(SystemExit), reported("task.env"):
+        raise InstantiationException("Error in call to target") from FileNotFoundError("no x.urdf")
+    assert "error: task.env: no x.urdf (HYDRA_FULL_ERROR" in capsys.readouterr().err
+    # Outside a named node a plain ValueError is no config value's: its traceback stays.
+    with pytest.raises(ValueError, match="a bug"), reported():
+        raise ValueError("a bug")
+
+
 # ------------------------------------------------------------------ in-process train.py
 def run_train(*overrides):
     """``python train.py <overrides>`` in this process (exceptions propagate)."""
