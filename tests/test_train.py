@@ -367,6 +367,18 @@ def compose_config(*overrides):
         return compose("config", overrides=list(overrides))
 
 
+def test_the_runs_own_settings_default_to_the_documented_values():
+    cfg = compose_config()
+    keys = ("seed", "device", "threads", "checkpoint_every", "figure_every", "resume", "progress")
+    assert {key: cfg[key] for key in keys} == {
+        "seed": 0, "device": "cpu", "threads": 1, "checkpoint_every": 20, "figure_every": 25,
+        "resume": None, "progress": True,
+    }  # fmt: skip
+    assert cfg.trials == cfg.task.trials == 300  # the task's budget
+    # The task runs on the run's device unless set apart.
+    assert compose_config("device=cuda:1").task.env.device == "cuda:1"
+
+
 @pytest.mark.parametrize(
     "overrides, key, message",
     [
