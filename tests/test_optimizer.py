@@ -61,6 +61,19 @@ def test_resumed_run_makes_exactly_the_same_draws(cls):
     assert torch.equal(resumed.ask(), straight.ask())
 
 
+def test_the_priors_reward_variance_is_floored_at_a_hundredth_of_the_largest_weight_squared():
+    # A first batch of nearly equal returns: var w (2.5e-4) is below the floor 1e-2 · 0.35².
+    opt = Dipole(torch.zeros(2, dtype=F64), 1.0, reward_range=(0.0, 10.0),
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    theta = opt.ask()
+    returns = torch.full((theta.shape[0],), 3.0, dtype=F64)
+    returns[0] = 3.5  # weights 0.35 and 0.3
+    opt.tell(theta, returns)
+    variance = float(opt.initial_prior.mean_covariance[-1, -1])
+    assert variance == pytest.approx(1e-2 * 0.35**2, rel=1e-12)
+    assert opt.initial_prior.mean_covariance[:-1, :-1].equal(torch.eye(2, dtype=F64))
+
+
 def test_dipole_mixture_predicts_returns_in_return_units():
     task = MultimodalTask()
     opt = run(make(Dipole, task, seed=1), task, 200)
