@@ -226,6 +226,23 @@ def test_returns_a_hundred_orders_beyond_the_first_batchs_adopt_no_absurd_policy
     assert bool(opt.ask().isfinite().all())
 
 
+def test_a_first_clustering_that_fails_numerically_is_counted_and_one_component_adopted(
+    monkeypatch,
+):
+    # (train.py logs the count to TensorBoard: search/clusterings_skipped.)
+    from dipole_torch import DPSampler
+
+    def singular(*args, **kwargs):
+        raise torch.linalg.LinAlgError("a numerically singular covariance")
+
+    monkeypatch.setattr(DPSampler, "fit", singular)
+    opt = Dipole(torch.zeros(2, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
+    theta = opt.ask()
+    opt.tell(theta, quadratic(theta))
+    assert opt.clusterings_skipped == 1 and opt.num_policies == 1
+    assert bool(opt.ask().isfinite().all())
+
+
 # ---------------------------------------------------------------------- the largest floats
 @pytest.mark.parametrize("kind", ["dipole", "power"])
 def test_returns_of_plus_minus_1_5e308_are_told_and_learning_goes_on(kind):
