@@ -587,15 +587,17 @@ def test_a_misspelt_name_gets_a_guess_only_where_one_is_close():
     from dipole_torch.training.checks import check_config
 
     said = {}
-    for override in ("+thread_count=2", "+algo.optimizer.alpah=2", "+optimizer=power"):
+    for override in ("+thread_count=2", "+algo.optimizer.alpah=2", "+optimizer=power", "+alpha=2"):
         with pytest.raises(ValueError) as refused:
-            check_config(composed(override))
+            check_config(composed("task=mountain_car", override))
         said[override] = str(refused.value)
     assert "(a misspelling? python train.py --help" in said["+thread_count=2"]
     assert "did you mean" not in said["+thread_count=2"]
     # The word on choosing a task or an optimizer only where the guess is a section of one.
     assert "(did you mean algo.optimizer.alpha? python train.py" in said["+algo.optimizer.alpah=2"]
     assert "did you mean algo.optimizer? task=<name> and algo=<name>" in said["+optimizer=power"]
+    # Of the keys that end with it (task.env.alpha, algo.optimizer.alpha), the shortest.
+    assert "(did you mean task.env.alpha? python train.py" in said["+alpha=2"]
 
 
 def test_reported_makes_a_constructors_refusal_one_line_and_lets_a_bug_through(capsys, monkeypatch):
