@@ -86,6 +86,24 @@ def test_dipole_mixture_predicts_returns_in_return_units():
     assert given_high.event_shape == (2,)
 
 
+def test_the_mixture_is_the_last_clusterings_in_return_units_at_the_policies_means():
+    # matching="replace": the components are the policies, at their current means and
+    # weighted by their kept samples now; the reward axis in return units (slope 4).
+    opt = Dipole(torch.zeros(2, dtype=F64), 1.0, matching="replace", retire_std=0.0,
+                 reward_range=(0.0, 4.0), generator=torch.Generator().manual_seed(0))  # fmt: skip
+    for _ in range(3):  # the first batch's clustering, then two iterations without one
+        theta = opt.ask()
+        opt.tell(theta, (4.0 - (theta - 1.0).pow(2).sum(-1)).clamp(0.0, 4.0))
+    mixture, state, k = opt.mixture, opt.dp_state, opt.num_policies
+    counts = opt.archive.counts(k).to(F64)
+    assert not torch.equal(counts, state.counts.to(F64))  # policies sampled since
+    torch.testing.assert_close(mixture.weights, counts / counts.sum())
+    assert torch.equal(mixture.means[:, :2], opt.policy_means)
+    torch.testing.assert_close(mixture.means[:, 2], 4.0 * state.means[:, 2])
+    scale = torch.tensor([1.0, 1.0, 4.0], dtype=F64)
+    torch.testing.assert_close(mixture.covariances, state.covariances * scale[:, None] * scale)
+
+
 def test_bad_input_is_rejected_before_it_changes_anything():
     task = MultimodalTask()
     opt = make(Dipole, task)
