@@ -495,6 +495,17 @@ def test_a_state_saved_with_a_box_open_on_every_side_loads_into_the_same_optimiz
     assert torch.equal(opt.ask(), saved.ask())
 
 
+def test_settings_are_compared_as_they_take_effect_not_as_given():
+    # n0 left to its default 2M = 10 and n0=10 given are one optimizer; n0=12 is another.
+    saved = Dipole(torch.zeros(2, dtype=F64), 1.0, generator=torch.Generator().manual_seed(0))
+    theta = saved.ask()
+    saved.tell(theta, quadratic(theta))
+    state = saved.state_dict()
+    Dipole(torch.zeros(2, dtype=F64), 1.0, n0=10).load_state_dict(state)
+    with pytest.raises(ValueError, match="n0: 10 saved, 12 here"):
+        Dipole(torch.zeros(2, dtype=F64), 1.0, n0=12).load_state_dict(state)
+
+
 def test_a_checkpoint_round_trip_continues_identically():
     # (The refusals above must not cost the plain case: load, then the same draws.)
     opt = build("dipole")
