@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from dipole_torch import Dipole, Power, RewardScale
+from dipole_torch import Dipole, NormalInverseWishartPrior, Power, RewardScale
 
 F64 = torch.float64
 OPTIMUM = torch.tensor([1.0, 1.0], dtype=F64)
@@ -802,6 +802,13 @@ def _bad(state, key, value):
         (("dp_state", "labels"), lambda v: v + 100, r"dp_state'\].labels must lie in \[0, "),
         (("dp_state", "means"), lambda v: v[:, :2], r"dp_state'\].means must have shape \[K, 3\]"),
         (("dp_state", "covariances"), lambda v: -v, "dp_state'].covariances is not positive"),
+        (
+            "initial_prior",  # (replaced by H over [θ, w] of a D = 3 run)
+            lambda v: NormalInverseWishartPrior.from_exploration(
+                torch.zeros(4, dtype=F64), torch.eye(4, dtype=F64)
+            ).state_dict(),
+            r"state_dict\['initial_prior'\] is over 4 dimensions, not D \+ 1 = 3",
+        ),
     ],
 )
 def test_a_state_with_values_that_cannot_be_a_runs_is_refused(key, edit, message):
