@@ -328,6 +328,26 @@ def test_a_run_with_coverage_from_resumes_as_it_ran_on_either_side_of_it(saved_a
     assert whole.scouting.unjudged_samples == copy.scouting.unjudged_samples
 
 
+def test_a_state_saved_between_ask_and_tell_past_coverage_from_is_told_as_the_run_would():
+    # load_state_dict sets the covering options from the trial count, as ask does.
+    def make(seed):
+        return build(4, seed=seed, coverage_from=200, unjudged_share=0.5, coverage_max_policies=3)
+
+    whole = run_to(make(0), 250)
+    theta = whole.ask()
+    copy = make(7)
+    copy.load_state_dict(whole.state_dict())
+    assert (copy.max_policies, copy.vetting.accept_unjudged, copy.scouting.max_sampled) == (
+        3,
+        True,
+        None,
+    )
+    for opt in (whole, copy):
+        opt.tell(theta, equal_maxima(theta))
+        run_to(opt, 300)
+    assert torch.equal(whole.policy_means, copy.policy_means)
+
+
 @pytest.mark.parametrize(
     "changes, message",
     [
