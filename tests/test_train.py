@@ -546,6 +546,25 @@ def test_each_default_is_stated_once_in_the_code():
     assert all(power[k] == parameters[k].default for k in power if k != "_target_")
 
 
+def test_the_help_page_lists_the_choices_the_nullable_types_and_each_preset_once(monkeypatch):
+    text = schemas.help_text("")
+    lines = text.splitlines()
+    tasks = sorted(p.stem for p in (ROOT / "configs" / "task").glob("*.yaml"))
+    assert f"== Tasks: task={', '.join(tasks)} ==" in lines
+    assert "  resume: str or null = null" in lines
+    assert "  task.block: ViapointBlock or null = null" in lines
+    presets = [line for line in lines if "settings above" in line]
+    assert presets == [
+        "== algo=dipole_coverage: the algo=dipole settings above, with accept_unjudged=true, "
+        "max_sampled=null, unjudged_share=0.5 =="
+    ]
+    # The program as it was started: the script, or the installed command.
+    monkeypatch.setattr(sys, "argv", ["/usr/local/bin/dipole-train"])
+    assert schemas.help_text("").startswith("dipole-train [task=<task>]")
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    assert schemas.help_text("").startswith("python train.py [task=<task>]")
+
+
 def test_help_lists_every_field_with_its_help():
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "--help"],
