@@ -565,6 +565,13 @@ def test_the_help_page_lists_the_choices_the_nullable_types_and_each_preset_once
     assert schemas.help_text("").startswith("python train.py [task=<task>]")
 
 
+def test_help_with_hydras_own_flags_shows_the_config_the_overrides_compose(capsys):
+    # python train.py -m task=viapoint seed=3 --help: the flags are Hydra's, not overrides.
+    schemas.print_help(["-m", "task=viapoint", "seed=3", "--help"], str(ROOT / "configs"))
+    config = capsys.readouterr().out.split("== This run's config (with the overrides given) ==")[1]
+    assert "name: viapoint" in config and "seed: 3" in config
+
+
 def test_help_lists_every_field_with_its_help():
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "--help"],
