@@ -213,6 +213,25 @@ def test_block_the_route_adds_the_obstacle_reevaluates_and_reports(task, routes)
     assert "\nafter it: 2 of the 8 routes at return ≥ 0.9" in report
 
 
+def test_a_changed_world_empties_the_queued_hill_valley_tests():
+    # Their thresholds are returns of the old world: no probe of them is asked after it.
+    from dipole_torch.tasks.multimodal import MultimodalTask
+
+    from dipole_torch.archive import PROBE
+
+    task = MultimodalTask()
+    opt = Dipole(task.theta0.double(), task.sigma_start.double(),
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    while opt.vetting.probes() is None and opt.iteration < 40:
+        theta = opt.ask()
+        opt.tell(theta, task.evaluate(theta).double())
+    assert opt.vetting.probes() is not None  # tests queued
+    opt.reevaluate(task.evaluate(opt.policy_means.float()).double())
+    assert opt.vetting.probes() is None
+    opt.ask()
+    assert not bool((opt.asked_owner == PROBE).any())
+
+
 def test_dipole_switches_to_a_stored_route_within_k_trials():
     """The default DIPOLE (seed 3, 3 routes on the open layout, see test_viapoint): after 300
     trials its best route is blocked; re-evaluating its K stored policies (K trials, no
