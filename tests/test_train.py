@@ -572,6 +572,22 @@ def test_help_with_hydras_own_flags_shows_the_config_the_overrides_compose(capsy
     assert "name: viapoint" in config and "seed: 3" in config
 
 
+def test_a_fields_help_is_the_first_sentence_of_its_docstring_entry():
+    from dipole_torch.training.schemas import docstring_help
+
+    doc = """Summary.
+
+    Args:
+        a: Use e.g. a :class:`~torch.Tensor` box
+            (see Box.fit). Then more.
+        b (int): ``k`` of eq. 9 in 1/m. Next.
+        c: one; see Foo.bar
+            note: a continued line, not an argument.
+    """
+    assert docstring_help(doc) == {"a": "Use e.g. a torch.Tensor box", "b": "k of eq. 9 in 1/m",
+                                   "c": "one"}  # fmt: skip
+
+
 def test_help_lists_every_field_with_its_help():
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "--help"],
