@@ -588,6 +588,14 @@ def test_a_fields_help_is_the_first_sentence_of_its_docstring_entry():
                                    "c": "one"}  # fmt: skip
 
 
+def test_builds_refuses_a_value_for_an_argument_the_target_lacks():
+    from dipole_torch import Power
+    from dipole_torch.training.schemas import builds
+
+    with pytest.raises(ValueError, match=r"dipole_torch.Power has no argument\(s\) \['devise'\]"):
+        builds(Power, target_path="dipole_torch.Power", values={"devise": "cpu"})
+
+
 def test_help_lists_every_field_with_its_help():
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "--help"],
