@@ -232,6 +232,24 @@ def test_a_changed_world_empties_the_queued_hill_valley_tests():
     assert not bool((opt.asked_owner == PROBE).any())
 
 
+def test_a_changed_world_forgets_the_range_of_the_old_worlds_returns():
+    # The range judges the spread of a policy's returns (retire_spread): the new world's are
+    # measured afresh, in the state a checkpoint saves too.
+    opt = Dipole(torch.zeros(2, dtype=torch.float64), 1.0,
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    for _ in range(6):
+        theta = opt.ask()
+        opt.tell(theta, -(theta - 1.0).pow(2).sum(-1))
+    assert opt.state_dict()["returns_told"] > 0
+    opt.reevaluate(-(opt.policy_means - 3.0).pow(2).sum(-1))
+    state = opt.state_dict()
+    assert (state["returns_told"], state["waking_low"], state["waking_high"]) == (
+        0,
+        math.inf,
+        -math.inf,
+    )
+
+
 def test_dipole_switches_to_a_stored_route_within_k_trials():
     """The default DIPOLE (seed 3, 3 routes on the open layout, see test_viapoint): after 300
     trials its best route is blocked; re-evaluating its K stored policies (K trials, no
