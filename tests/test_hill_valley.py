@@ -245,3 +245,22 @@ def test_a_run_that_accepts_unjudged_candidates_resumes_from_a_checkpoint_exactl
     old = make()
     old.load_state_dict(state)
     assert old.vetting.candidate_unjudged.shape == old.vetting.candidate_probes.shape[:1]
+
+
+def test_batch_size_counts_the_probes_asked_beside_the_samples():
+    # (train.py reads batch_size to fit the next batch into the trial budget.)
+    from dipole_torch.tasks.multimodal import MultimodalTask
+
+    from dipole_torch.archive import PROBE
+
+    task = MultimodalTask()  # D = 2: a probe's row count differs from its width
+    opt = Dipole(task.theta0.double(), task.sigma_start.double(),
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    probed = 0
+    for _ in range(12):
+        size = opt.batch_size
+        theta = opt.ask()
+        assert theta.shape[0] == size
+        probed += int((opt.asked_owner == PROBE).sum())
+        opt.tell(theta, task.evaluate(theta).double())
+    assert probed > 0
