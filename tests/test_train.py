@@ -390,6 +390,8 @@ def test_the_runs_own_settings_default_to_the_documented_values():
             "Value 'maybe' is not a valid bool",
         ),
         (["task=viapoint", "task.env.pass_times=[0.4,soon]"], "task.env.pass_times[1]", "Float"),
+        # A parameter typed str | Path is a string in the schema.
+        (["task=viapoint", "task.env.urdf=[a.urdf]"], "task.env.urdf", "Cannot convert 'list'"),
         (["task=cartpole", "task.n0=ten"], "task.n0", "could not be converted to Integer"),
         (["trials=true"], "trials", "could not be converted to Integer"),
         (["seed=abc"], "seed", "could not be converted to Integer"),
