@@ -104,6 +104,12 @@ def test_the_mixture_is_the_last_clusterings_in_return_units_at_the_policies_mea
     torch.testing.assert_close(mixture.covariances, state.covariances * scale[:, None] * scale)
 
 
+def test_the_mixture_before_the_first_tell_is_a_clear_error():
+    opt = Dipole(torch.zeros(2, dtype=F64), 1.0)
+    with pytest.raises(RuntimeError, match=r"the mixture exists after the first tell\(\)"):
+        opt.mixture  # noqa: B018
+
+
 def test_bad_input_is_rejected_before_it_changes_anything():
     task = MultimodalTask()
     opt = make(Dipole, task)
