@@ -555,6 +555,7 @@ def test_the_help_page_lists_the_choices_the_nullable_types_and_each_preset_once
     assert f"== Tasks: task={', '.join(tasks)} ==" in lines
     assert "  resume: str or null = null" in lines
     assert "  task.block: ViapointBlock or null = null" in lines
+    assert "  task.env.start: list[float] or null = [0.5, -0.35, 0.0]" in lines  # a tuple default
     presets = [line for line in lines if "settings above" in line]
     assert presets == [
         "== algo=dipole_coverage: the algo=dipole settings above, with accept_unjudged=true, "
