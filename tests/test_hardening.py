@@ -506,6 +506,17 @@ def test_settings_are_compared_as_they_take_effect_not_as_given():
         Dipole(torch.zeros(2, dtype=F64), 1.0, n0=12).load_state_dict(state)
 
 
+def test_a_state_without_a_dipole_key_is_refused_naming_it():
+    opt = build("dipole")
+    theta = opt.ask()
+    opt.tell(theta, quadratic(theta))
+    state = opt.state_dict()
+    del state["initial_prior"]
+    fresh = build("dipole")
+    with pytest.raises(ValueError, match=r"state_dict has no 'initial_prior' \(not a Dipole's\)"):
+        fresh.load_state_dict(state)
+
+
 def test_a_checkpoint_round_trip_continues_identically():
     # (The refusals above must not cost the plain case: load, then the same draws.)
     opt = build("dipole")
