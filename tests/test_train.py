@@ -556,6 +556,7 @@ def test_the_help_page_lists_the_choices_the_nullable_types_and_each_preset_once
     assert "  resume: str or null = null" in lines
     assert "  task.block: ViapointBlock or null = null" in lines
     assert "  task.env.start: list[float] or null = [0.5, -0.35, 0.0]" in lines  # a tuple default
+    assert not [line for line in lines if "_target_" in line]  # what is built is no setting
     presets = [line for line in lines if "settings above" in line]
     assert presets == [
         "== algo=dipole_coverage: the algo=dipole settings above, with accept_unjudged=true, "
