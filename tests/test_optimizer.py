@@ -6,7 +6,7 @@ import pytest
 import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
 
-from dipole_torch import Dipole, DPSampler, GaussianMixture, Power
+from dipole_torch import Dipole, DipoleOptions, DPSampler, GaussianMixture, Power
 from dipole_torch.result import SearchResult
 from dipole_torch.settings import setting_differences
 
@@ -102,6 +102,23 @@ def test_the_mixture_is_the_last_clusterings_in_return_units_at_the_policies_mea
     torch.testing.assert_close(mixture.means[:, 2], 4.0 * state.means[:, 2])
     scale = torch.tensor([1.0, 1.0, 4.0], dtype=F64)
     torch.testing.assert_close(mixture.covariances, state.covariances * scale[:, None] * scale)
+
+
+def test_after_a_merge_the_mixture_keeps_the_last_clusterings_components():
+    # matching="replace" with merges: a policy merged since the clustering leaves fewer
+    # policies than components, and the mixture is the clustering's as it was.
+    options = DipoleOptions.paper(merge_radius=1.0, reward_range=None)
+    opt = Dipole(torch.zeros(2, dtype=F64), 1.0, options=options,
+                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+    for _ in range(2):
+        theta = opt.ask()
+        opt.tell(theta, -(theta - 0.5).square().sum(-1))
+    state = opt.dp_state
+    assert opt.num_policies < state.means.shape[0]  # merged since the clustering
+    mixture = opt.mixture
+    assert torch.equal(mixture.means[:, :2], state.means[:, :2])
+    counts = state.counts.to(F64)
+    torch.testing.assert_close(mixture.weights, counts / counts.sum())
 
 
 def test_the_mixture_before_the_first_tell_is_a_clear_error():
