@@ -16,7 +16,10 @@ own ``random.Random``:
 * an algorithm (``dipole``, ``dipole_coverage``, ``dipole_paper``, ``power``) and, half the
   time, random values of its options (``tests/fuzz_long_runs.py``'s draws, those the
   algorithm's schema has), sometimes with a box (``bounds``);
-* ``checkpoint_every``, ``figure_every`` and ``progress``.
+* ``checkpoint_every``, ``figure_every`` and ``progress``;
+* for the viapoint tasks, in 30 % of the cases, a vendor-style arm of ``tests/urdf/``
+  instead of the WAM (drawn from a stream of its own, so that the other draws of a seed do
+  not depend on it).
 
 Then, for a run that ended well, in a third of the cases the run again in two sessions, the
 first stopped by SIGINT after one of its progress lines and resumed (its results must be the
@@ -85,6 +88,16 @@ ENV = {
 }
 
 
+# Vendor-style arms (tests/urdf/): file, end effector, a start posture. The viapoint layout
+# stays the WAM's: some points lie out of an arm's reach, which the task warns of.
+ARMS = (
+    ("iiwa_style.urdf", "lbr_iiwa_link_ee", [0.0, 0.5, 0.0, -1.2, 0.0, 0.6, 0.0]),
+    ("panda_style.urdf", "panda_hand_tcp", [0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.785]),
+    ("gen3_style.urdf", "tool_frame", [0.0, 0.4, 0.0, 1.6, 0.0, 1.0, 0.0]),
+    ("xarm6_style.urdf", "link_eef", [0.0, -0.5, -0.8, 0.0, 1.3, 0.0]),
+)
+
+
 def hydra_value(value) -> str:
     """``value`` written as a Hydra override's right-hand side."""
     if value is None:
@@ -124,6 +137,14 @@ def draw_case(seed: int) -> tuple[list[str], int]:
         if rng.random() < 0.2:
             changes["bounds"] = rng.choice([[-1e3, 1e3], [-50.0, 50.0]])
     overrides += [f"algo.optimizer.{k}={hydra_value(v)}" for k, v in changes.items()]
+    arm = random.Random(seed + 2 * 10**9)  # (its own stream: the other draws stay the same)
+    if task.startswith("viapoint") and arm.random() < 0.3:
+        file, end_effector, posture = arm.choice(ARMS)
+        overrides += [
+            f"task.env.urdf={ROOT / 'tests' / 'urdf' / file}",
+            f"task.env.end_effector={end_effector}",
+            f"task.env.initial_joints={hydra_value(posture)}",
+        ]
     overrides += [
         f"checkpoint_every={rng.choice([1, 3, 20])}",
         f"figure_every={rng.choice([0, 1, 7, 25])}",
