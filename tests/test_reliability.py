@@ -509,6 +509,21 @@ def test_a_new_run_does_not_overwrite_a_runs_checkpoint(finished_run):
     assert (finished_run / "checkpoint.pt").read_bytes() == before
 
 
+def test_a_cut_last_batch_is_not_checkpointed_even_at_the_checkpoint_cadence(
+    finished_run, tmp_path
+):
+    # The budget cuts the first batch of several rows after its first row; with a
+    # checkpoint at every iteration the cut iteration's turn must still not write one (a
+    # checkpoint of the cut run would resume into other draws than an uninterrupted run's).
+    ends = json.loads((finished_run / "results.json").read_text())["history"]["trials"]
+    before = next(a for a, b in zip(ends, ends[1:], strict=False) if b - a >= 2)
+    run_train(f"hydra.run.dir={tmp_path}", f"trials={before + 1}", "checkpoint_every=1")
+    assert json.loads((tmp_path / "results.json").read_text())["trials"] == before + 1
+    checkpoint = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert checkpoint["optimizer"]["trials"] == before
+    assert checkpoint["optimizer"]["pending"] is None
+
+
 def test_config_differences_lists_dotted_keys():
     saved = {"task": {"name": "a", "env": {"dim": 2}}, "trials": 5, "hydra": {"x": 1}}
     current = {"task": {"name": "b", "env": {"dim": 2, "new": 1}}, "trials": 9, "hydra": {}}
