@@ -524,6 +524,39 @@ def test_a_cut_last_batch_is_not_checkpointed_even_at_the_checkpoint_cadence(
     assert checkpoint["optimizer"]["pending"] is None
 
 
+def test_a_stopped_run_writes_its_checkpoint_draws_no_final_figure_and_exits_143(
+    tmp_path, monkeypatch
+):
+    # SIGTERM during the third iteration: the loop finishes it, writes the checkpoint there,
+    # says so, and exits with 128 + 15; the final figure is the finished run's alone (none
+    # is drawn at a stop, figure_every=0 draws none before).
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from dipole_torch.training import board
+
+    log_iteration, logged = board.Board.log_iteration, []
+
+    def stop_in_the_third(self, optimizer):
+        logged.append(optimizer.trials)
+        if len(logged) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return log_iteration(self, optimizer)
+
+    monkeypatch.setattr(board.Board, "log_iteration", stop_in_the_third)
+    with pytest.raises(SystemExit) as stopped:
+        run_train(f"hydra.run.dir={tmp_path}", "trials=40")
+    assert stopped.value.code == 128 + signal.SIGTERM and len(logged) == 3
+    checkpoint = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert checkpoint["optimizer"]["trials"] == logged[-1] < 40
+    assert checkpoint["figure_trials"] is None
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert "task/optima" not in events.Tags()["scalars"] and not events.Tags()["images"]
+    said = (tmp_path / "train.log").read_text()
+    assert f"stopped by SIGTERM at {logged[-1]} of 40 trials; checkpoint at {logged[-1]}" in said
+    assert not (tmp_path / "results.json").exists()
+
+
 def test_config_differences_lists_dotted_keys():
     saved = {"task": {"name": "a", "env": {"dim": 2}}, "trials": 5, "hydra": {"x": 1}}
     current = {"task": {"name": "b", "env": {"dim": 2, "new": 1}}, "trials": 9, "hydra": {}}
