@@ -557,6 +557,17 @@ def test_a_stopped_run_writes_its_checkpoint_draws_no_final_figure_and_exits_143
     assert not (tmp_path / "results.json").exists()
 
 
+def test_a_resumed_runs_wall_time_counts_its_earlier_sessions(finished_run, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(finished_run, copy)
+    checkpoint = load_checkpoint(copy / "checkpoint.pt")
+    checkpoint["wall_time_s"] = 1e6  # the earlier sessions' time, as the checkpoint says it
+    atomic_save(checkpoint, copy / "checkpoint.pt")
+    run_train(f"resume={copy / 'checkpoint.pt'}", "trials=40")
+    assert json.loads((copy / "results.json").read_text())["wall_time_s"] >= 1e6
+    assert load_checkpoint(copy / "checkpoint.pt")["wall_time_s"] >= 1e6
+
+
 def test_config_differences_lists_dotted_keys():
     saved = {"task": {"name": "a", "env": {"dim": 2}}, "trials": 5, "hydra": {"x": 1}}
     current = {"task": {"name": "b", "env": {"dim": 2, "new": 1}}, "trials": 9, "hydra": {}}
