@@ -987,3 +987,17 @@ def test_stds_of_another_length_than_theta0_are_refused(kind, length):
     cls = Dipole if kind == "dipole" else Power
     with pytest.raises(ValueError, match=r"sigma_start must have shape \[2, 2\]"):
         cls(torch.zeros(2, dtype=F64), torch.ones(length, dtype=F64))
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1.0, 1e6])
+def test_a_matrix_is_symmetric_to_1e_6_of_its_largest_variance_at_any_scale(scale):
+    """A covariance whose two off-diagonal entries differ by 1e-7 of its largest variance
+    passes (rounding); by 5e-6 of it, it is refused, naming it, whatever its units."""
+    from dipole_torch.validation import check_positive_definite
+
+    def matrix(asymmetry):
+        return torch.tensor([[2.0, 0.5], [0.5 + 2.0 * asymmetry, 1.0]], dtype=F64) * scale
+
+    check_positive_definite(matrix(1e-7), "sigma_start")
+    with pytest.raises(ValueError, match="sigma_start is not symmetric"):
+        check_positive_definite(matrix(5e-6), "sigma_start")
