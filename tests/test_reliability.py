@@ -568,6 +568,19 @@ def test_a_resumed_runs_wall_time_counts_its_earlier_sessions(finished_run, tmp_
     assert load_checkpoint(copy / "checkpoint.pt")["wall_time_s"] >= 1e6
 
 
+def test_a_policy_figure_comes_every_figure_every_iterations_and_at_the_end(tmp_path):
+    # The cadence counts iterations (batches), not trials: with figure_every=3, the policy
+    # figure and the task's scalars after the 3rd, 6th and 9th batches, and at the budget.
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run_train(f"hydra.run.dir={tmp_path}", "trials=40", "figure_every=3")
+    ends = json.loads((tmp_path / "results.json").read_text())["history"]["trials"]
+    assert len(ends) % 3 != 0  # (so that the final figure is not also a cadence one)
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()  # (this task draws no image: its figure's scalars mark each figure)
+    assert [event.step for event in events.Scalars("task/optima")] == [*ends[2::3], 40]
+
+
 def test_config_differences_lists_dotted_keys():
     saved = {"task": {"name": "a", "env": {"dim": 2}}, "trials": 5, "hydra": {"x": 1}}
     current = {"task": {"name": "b", "env": {"dim": 2, "new": 1}}, "trials": 9, "hydra": {}}
