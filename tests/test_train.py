@@ -604,6 +604,18 @@ def test_builds_refuses_a_value_for_an_argument_the_target_lacks():
         builds(Power, target_path="dipole_torch.Power", values={"devise": "cpu"})
 
 
+def test_dash_h_is_the_same_help_as_dash_dash_help(capsys, monkeypatch):
+    # -h lists the settings as --help does (not Hydra's own help); in this process.
+    import train as script
+
+    for flag in ("-h", "--help"):
+        monkeypatch.setattr(sys, "argv", ["train.py", "task=viapoint", flag])
+        script.main()
+        text = " ".join(capsys.readouterr().out.split())
+        assert "algo.optimizer.alpha: float = 1.0 DP concentration α > 0 (paper: 1)" in text
+        assert "== task=viapoint: Move an arm's end effector" in text
+
+
 def test_help_lists_every_field_with_its_help():
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), "--help"],
