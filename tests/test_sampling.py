@@ -127,6 +127,18 @@ def test_numpy_categorical_draw_matches_the_torch_one():
     assert draw_categorical_numpy(np.array([0.0, 0.0, -inf, -inf]), 1.0 - 2.0**-53) == 1
 
 
+def test_a_categorical_draw_skips_zero_probability_labels_at_both_ends_of_u():
+    # u = 0 lands on the first possible label, not a leading impossible one; a u that
+    # rounds to 1 in the logits' dtype (float32 here) on the last possible one, not a
+    # trailing impossible one.
+    inf = math.inf
+    for dtype in (torch.float32, F64):
+        logits = torch.tensor([[-inf, 0.0, 0.0, -inf]], dtype=dtype)
+        assert draw_categorical(logits, torch.tensor([0.0], dtype=F64)).tolist() == [1]
+        near_one = torch.tensor([1.0 - 2.0**-30], dtype=F64)
+        assert draw_categorical(logits, near_one).tolist() == [2]
+
+
 def test_numpy_categorical_draw_refuses_a_row_without_a_possible_label():
     """Every logit −inf (or NaN): a FloatingPointError that says so, not a label drawn from
     a CDF of NaN."""
