@@ -145,6 +145,32 @@ def test_the_success_rule_exact_values_tell_by_tell(target):
     assert capped_any and uncapped_success
 
 
+@pytest.mark.parametrize("target", TARGETS)
+def test_the_success_rule_exact_values_when_a_batch_samples_some_policies(target):
+    # A batch cut to fewer rows than policies (as train.py cuts the last one): the sampled
+    # policies' p̄, path and Σ are updated by the rule (the gathered and scattered rows),
+    # the others' stand.
+    sigma_start = torch.diag(torch.tensor([1.0, 0.36], dtype=F64))
+    opt = success_rule_dipole(sigma_start, target)
+    k = opt.num_policies
+    assert k >= 3
+    for t in range(3):
+        theta = opt.ask(max_rows=k - 1)
+        owner = opt.asked_owner[: theta.shape[0]].clone()  # (the rows told)
+        assert len(set(owner.tolist())) == owner.numel() == k - 1  # some policies, once each
+        best = opt.policy_best_rewards[owner]
+        succeed = (torch.arange(k - 1) + t) % 2 == 0
+        rewards = torch.where(succeed, best + 0.5 * best.abs() + 1.0, best)
+        paths, success, covs, _, successes = success_rule_by_hand(
+            opt, theta.clone(), rewards, owner
+        )
+        assert successes == succeed.tolist()
+        opt.tell(theta, rewards)
+        torch.testing.assert_close(opt.policy_set.success, success, rtol=1e-13, atol=0)
+        torch.testing.assert_close(opt.policy_set.paths, paths, rtol=1e-11, atol=1e-14)
+        torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
+
+
 # ---------------------------------------------------------------------- b. global importance
 def paper_with_archive(m: int, means, thetas, rewards, owner) -> Dipole:
     opt = Dipole.paper(torch.zeros(2, dtype=F64), 1.0, M=m, generator=torch.Generator())
