@@ -330,7 +330,8 @@ def test_a_resumed_blocked_run_continues_exactly(blocked_run, tmp_path):
 
 def test_a_block_whose_reevaluation_would_pass_the_budget_ends_the_run_there(blocked_run, tmp_path):
     # At trial 45 the K stored policies would be re-evaluated; a budget one trial short of
-    # that ends the run at 45 trials, unblocked, and results.json says 45 of the budget.
+    # that ends the run at 45 trials, unblocked, and results.json says 45 of the budget; a
+    # budget it fits exactly blocks.
     k = len(json.loads((blocked_run / "results.json").read_text())["block"]["returns"])
     assert k >= 2  # (K = 1 would make the budget 45, refused: the block would never come)
     budget = 45 + k - 1
@@ -341,6 +342,11 @@ def test_a_block_whose_reevaluation_would_pass_the_budget_ends_the_run_there(blo
     assert "block" not in results and results["history"]["trials"][-1] == 45
     log = (tmp_path / "train.log").read_text()
     assert f"no block: re-evaluating would take the run past {budget}" in log
+    # Resumed with a budget the re-evaluation fits exactly, the block comes, at 45.
+    train(*common, f"trials={45 + k}", "figure_every=0", f"resume={tmp_path / 'checkpoint.pt'}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["trials"] == 45 + k and results["block"]["trial"] == 45
+    assert len(results["block"]["returns"]) == k
 
 
 def test_power_on_the_blocked_task(tmp_path):
