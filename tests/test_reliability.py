@@ -565,6 +565,8 @@ def test_a_resumed_runs_wall_time_counts_its_earlier_sessions(finished_run, tmp_
     atomic_save(checkpoint, copy / "checkpoint.pt")
     run_train(f"resume={copy / 'checkpoint.pt'}", "trials=40")
     assert json.loads((copy / "results.json").read_text())["wall_time_s"] >= 1e6
+    said = f"resumed {copy / 'checkpoint.pt'} at 40 trials (seed 0)"
+    assert said in (copy / "train.log").read_text()
     assert load_checkpoint(copy / "checkpoint.pt")["wall_time_s"] >= 1e6
 
 
