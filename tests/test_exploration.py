@@ -125,3 +125,27 @@ def test_a_new_policy_never_starts_below_the_success_rules_floor():
         opt.exploration.starting_covariance(opt, wide),
         torch.stack([0.25 * sigma_start, sigma_start]),
     )
+
+
+def test_a_new_policys_spread_is_the_trace_of_its_covariance_whitened_by_sigma_start():
+    """``start_spread`` is tr(Σ_start⁻¹ Σ)/D, on each axis in Σ_start's units (1 for Σ_start
+    itself), and a new policy starts at that multiple of Σ_start, at most Σ_start."""
+    from types import SimpleNamespace
+
+    from dipole_torch.mechanisms.exploration import SuccessRule, start_spread
+
+    sigma_start = torch.tensor([[1.0, 0.0], [0.0, 100.0]], dtype=F64)
+    search = SimpleNamespace(sigma_start=sigma_start)
+    covariances = torch.stack(
+        (
+            sigma_start,
+            torch.diag(torch.tensor([0.5, 100.0], dtype=F64)),  # (0.5 + 1) / 2
+            torch.tensor([[0.25, 1.0], [1.0, 25.0]], dtype=F64),  # (0.25 + 0.25) / 2
+            4.0 * sigma_start,
+        )
+    )
+    spread = start_spread(search, covariances)
+    torch.testing.assert_close(spread, torch.tensor([1.0, 0.75, 0.25, 4.0], dtype=F64))
+    start = SuccessRule(2).starting_covariance(search, covariances)
+    expected = torch.tensor([1.0, 0.75, 0.25, 1.0], dtype=F64)[:, None, None] * sigma_start
+    torch.testing.assert_close(start, expected)
