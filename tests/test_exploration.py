@@ -149,3 +149,24 @@ def test_a_new_policys_spread_is_the_trace_of_its_covariance_whitened_by_sigma_s
     start = SuccessRule(2).starting_covariance(search, covariances)
     expected = torch.tensor([1.0, 0.75, 0.25, 1.0], dtype=F64)[:, None, None] * sigma_start
     torch.testing.assert_close(start, expected)
+
+
+def test_the_condition_floor_is_1e12_in_sigma_starts_per_axis_units():
+    """A covariance whose smallest Cholesky pivot², in Σ_start's per-axis units, is below
+    1/``MAX_CONDITION`` = 1e-12 of its largest variance gets that much of Σ_start's
+    diagonal (not of Σ_start) added; one at 10^-11.5 is left as it is."""
+    from types import SimpleNamespace
+
+    from dipole_torch.mechanisms.exploration import bounded_condition
+
+    for sigma_start in (
+        torch.tensor([[1.0, 0.5], [0.5, 1.0]], dtype=F64),
+        torch.diag(torch.tensor([1e-6, 1e4], dtype=F64)),
+    ):
+        search = SimpleNamespace(sigma_start=sigma_start)
+        variances = sigma_start.diagonal()
+        low = torch.diag(torch.tensor([1.0, 10**-12.5], dtype=F64)) * torch.diag(variances)
+        fine = torch.diag(torch.tensor([1.0, 10**-11.5], dtype=F64)) * torch.diag(variances)
+        out = bounded_condition(search, torch.stack((low, fine)))
+        torch.testing.assert_close(out[0], low + 1e-12 * torch.diag(variances), rtol=1e-12, atol=0)
+        assert torch.equal(out[1], fine)
