@@ -227,3 +227,14 @@ def test_power_keeps_m_samples_of_its_first_batch_and_refuses_a_zero_floor():
     assert torch.equal(opt.rewards.sort().values, rewards.sort().values[-3:])
     with pytest.raises(ValueError, match=r"min_exploration must lie in \(0, 1\]"):
         Power([0.0], 1.0, exploration_decay=0.5, min_exploration=0.0)
+
+
+def test_powers_defaults_are_written_out():
+    # The paper's M = 5 and n0 = M, and the defaults the docstring states, written out here
+    # (not read from the signature).
+    opt = Power([0.0, 0.0], 0.5)
+    settings = opt._settings()  # what a checkpoint records and a resume compares
+    assert (settings["M"], settings["n0"], settings["reward_range"]) == (5, 5, None)
+    assert settings["reward_floor"] == 1e-3 and settings["exploration_decay"] == 1.0
+    assert settings["min_exploration"] == 1e-2 and settings["best_evaluations"] == 1
+    assert opt.ask().shape == (5, 2)
