@@ -238,3 +238,9 @@ def test_powers_defaults_are_written_out():
     assert settings["reward_floor"] == 1e-3 and settings["exploration_decay"] == 1.0
     assert settings["min_exploration"] == 1e-2 and settings["best_evaluations"] == 1
     assert opt.ask().shape == (5, 2)
+
+
+@pytest.mark.parametrize("n0", [0, -1, 2.5, True, "5"])
+def test_power_refuses_a_bad_n0_naming_it(n0):
+    with pytest.raises(ValueError, match=r"n0 \(initial samples\) must be a positive integer"):
+        Power([0.0], 1.0, n0=n0)
