@@ -171,6 +171,41 @@ def test_the_success_rule_exact_values_when_a_batch_samples_some_policies(target
         torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
 
 
+@pytest.mark.parametrize("target", TARGETS)
+def test_the_success_rule_exact_values_with_max_sampled_and_scouts(target):
+    # The default's batch: max_sampled of the policies, then the scouts' rows (no policy's).
+    # The rule updates the sampled policies from their rows alone; the others' stand.
+    opt = Dipole(
+        torch.zeros(2, dtype=F64),
+        torch.diag(torch.tensor([1.0, 0.36], dtype=F64)),
+        generator=torch.Generator().manual_seed(0),
+        success_target=target,
+        explore=0.5,
+        hill_valley=False,
+        retire_std=0.0,
+        merge_radius=0.0,
+        max_sampled=2,
+        max_policies=None,
+    )
+    theta = opt.ask()
+    opt.tell(theta, bimodal(theta))
+    assert opt.num_policies >= 3
+    for t in range(3):
+        theta = opt.ask()
+        rows = int((opt.asked_owner >= 0).sum())
+        owner = opt.asked_owner[:rows].clone()
+        assert rows == 2 and theta.shape[0] > rows  # two policies, then scouts
+        best = opt.policy_best_rewards[owner]
+        succeed = (torch.arange(rows) + t) % 2 == 0
+        rewards = torch.where(succeed, best + 0.5 * best.abs() + 1.0, best)
+        rewards = torch.cat((rewards, torch.full((theta.shape[0] - rows,), -1e3, dtype=F64)))
+        paths, success, covs, _, _ = success_rule_by_hand(opt, theta.clone(), rewards, owner)
+        opt.tell(theta, rewards)
+        torch.testing.assert_close(opt.policy_set.success, success, rtol=1e-13, atol=0)
+        torch.testing.assert_close(opt.policy_set.paths, paths, rtol=1e-11, atol=1e-14)
+        torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
+
+
 # ---------------------------------------------------------------------- b. global importance
 def paper_with_archive(m: int, means, thetas, rewards, owner) -> Dipole:
     opt = Dipole.paper(torch.zeros(2, dtype=F64), 1.0, M=m, generator=torch.Generator())
