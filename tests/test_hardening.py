@@ -458,6 +458,18 @@ def test_a_state_saved_with_other_settings_is_refused_naming_them(kind, other, n
     assert torch.equal(opt.ask(), saved.ask())
 
 
+def test_a_power_state_saved_with_other_best_evaluations_is_refused_naming_them():
+    # (Not in the table above: loaded with strict=False, the run goes on with repeat rows,
+    # so its next ask is not the saved one's.)
+    saved = build("power")
+    for _ in range(3):
+        theta = saved.ask()
+        saved.tell(theta, quadratic(theta))
+    opt = Power(torch.zeros(2, dtype=F64), 1.0, best_evaluations=3)
+    with pytest.raises(ValueError, match=r"best_evaluations: 1 saved, 3 here"):
+        opt.load_state_dict(saved.state_dict())
+
+
 def test_settings_that_differ_by_rounding_alone_still_load():
     # A task's θ0 computed on another device or engine may differ in its last bits.
     theta0 = torch.tensor([0.3, -0.7], dtype=F64)
