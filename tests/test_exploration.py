@@ -170,3 +170,16 @@ def test_the_condition_floor_is_1e12_in_sigma_starts_per_axis_units():
         out = bounded_condition(search, torch.stack((low, fine)))
         torch.testing.assert_close(out[0], low + 1e-12 * torch.diag(variances), rtol=1e-12, atol=0)
         assert torch.equal(out[1], fine)
+
+
+def test_the_papers_policies_hold_their_own_copy_of_the_posterior_covariances():
+    # PosteriorExploration hands a policy its component's covariance: a copy, so that a
+    # policy's exploration written in place (a retirement's restart does) leaves the DP
+    # state, which a checkpoint saves and the next clustering reads, as drawn.
+    opt = Dipole.paper(torch.zeros(2, dtype=F64), 1.0, reward_range=(-1e4, 0.0),
+                       generator=torch.Generator().manual_seed(0))  # fmt: skip
+    theta = opt.ask()
+    opt.tell(theta, two_optima(theta))
+    state = opt.dp_state.covariances.clone()
+    opt.policy_set.covariances[0] *= 2.0
+    assert torch.equal(opt.dp_state.covariances, state)
