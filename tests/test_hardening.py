@@ -1013,3 +1013,13 @@ def test_a_matrix_is_symmetric_to_1e_6_of_its_largest_variance_at_any_scale(scal
     check_positive_definite(matrix(1e-7), "sigma_start")
     with pytest.raises(ValueError, match="sigma_start is not symmetric"):
         check_positive_definite(matrix(5e-6), "sigma_start")
+
+
+def test_a_non_finite_value_is_named_by_its_first_index():
+    from dipole_torch.validation import check_finite
+
+    values = torch.tensor([[0.0, 1.0, math.nan], [math.inf, 0.0, -math.inf]], dtype=F64)
+    with pytest.raises(
+        ValueError, match=r"rewards contains non-finite values \(first at index \(0, 2\)\)"
+    ):
+        check_finite(values, "rewards")
