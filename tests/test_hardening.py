@@ -1023,3 +1023,14 @@ def test_a_non_finite_value_is_named_by_its_first_index():
         ValueError, match=r"rewards contains non-finite values \(first at index \(0, 2\)\)"
     ):
         check_finite(values, "rewards")
+
+
+def test_a_tensor_with_more_dimensions_than_its_shape_is_refused_naming_it():
+    # [N, 1] rewards (a column) broadcast against [N] ones into an [N, N] mess.
+    from dipole_torch.validation import check_matrix_shape
+
+    check_matrix_shape(torch.zeros(3), (-1,), "rewards")
+    with pytest.raises(ValueError, match=r"rewards must have shape \[N\], got \[3, 1\]"):
+        check_matrix_shape(torch.zeros(3, 1), (-1,), "rewards")
+    with pytest.raises(ValueError, match=r"theta must have shape \[N, 2\], got \[2\]"):
+        check_matrix_shape(torch.zeros(2), (-1, 2), "theta")
