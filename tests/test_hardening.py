@@ -1034,3 +1034,17 @@ def test_a_tensor_with_more_dimensions_than_its_shape_is_refused_naming_it():
         check_matrix_shape(torch.zeros(3, 1), (-1,), "rewards")
     with pytest.raises(ValueError, match=r"theta must have shape \[N, 2\], got \[2\]"):
         check_matrix_shape(torch.zeros(2), (-1, 2), "theta")
+
+
+def test_semi_definiteness_allows_rounding_relative_to_the_largest_variance():
+    """A negative eigenvalue within 1e-9 of the largest variance is rounding (a covariance
+    shrunk to rank one, restored from a checkpoint); beyond it, the matrix is refused."""
+    from dipole_torch.validation import check_positive_semidefinite
+
+    def matrix(scale, negative):
+        return torch.diag(torch.tensor([scale, -negative * scale], dtype=F64))
+
+    for scale in (1e-6, 1.0, 1e6):
+        check_positive_semidefinite(matrix(scale, 1e-10), "covariances")
+        with pytest.raises(ValueError, match="covariances is not positive semi-definite"):
+            check_positive_semidefinite(matrix(scale, 1e-8), "covariances")
