@@ -328,3 +328,11 @@ def test_a_success_target_at_either_end_runs_long(target):
     assert torch.isfinite(opt.policy_means).all()
     assert bool((torch.linalg.eigvalsh(opt.policy_covariances) > 0).all())
     assert bool((opt.relative_std() <= 1.0 + 1e-12).all())
+
+
+def test_numpy_bools_and_numbers_are_taken_as_flags_and_values():
+    # A value read from a numpy array (a sweep's grid) is a numpy scalar, not a Python one.
+    import numpy as np
+
+    options = DipoleOptions(hill_valley=np.bool_(False), M=np.int64(6), alpha=np.float64(2.0))
+    assert (options.hill_valley, options.M, options.alpha) == (False, 6, 2.0)
