@@ -94,6 +94,19 @@ def success_rule_by_hand(opt: Dipole, theta, rewards, owner):
     return paths, success, covs, capped, successes
 
 
+def tell_and_check_the_rule(opt: Dipole, theta, rewards, owner):
+    """Tell ``rewards`` and check p̄, the paths and Σ against ``success_rule_by_hand``;
+    returns its ``(capped, successes)``."""
+    paths, success, covs, capped, successes = success_rule_by_hand(
+        opt, theta.clone(), rewards, owner
+    )
+    opt.tell(theta, rewards)
+    torch.testing.assert_close(opt.policy_set.success, success, rtol=1e-13, atol=0)
+    torch.testing.assert_close(opt.policy_set.paths, paths, rtol=1e-11, atol=1e-14)
+    torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
+    return capped, successes
+
+
 @pytest.mark.parametrize("target", TARGETS)
 def test_a_tie_with_the_best_kept_return_is_no_success(target):
     opt = success_rule_dipole(torch.eye(2, dtype=F64), target)
@@ -129,14 +142,8 @@ def test_the_success_rule_exact_values_tell_by_tell(target):
         # Alternately a success (better than the best kept) and a tie (no success).
         succeed = (owner + t) % 2 == 0
         rewards = torch.where(succeed, best + 0.5 * best.abs() + 1.0, best)
-        paths, success, covs, capped, successes = success_rule_by_hand(
-            opt, theta.clone(), rewards, owner
-        )
+        capped, successes = tell_and_check_the_rule(opt, theta, rewards, owner)
         assert successes == succeed.tolist()
-        opt.tell(theta, rewards)
-        torch.testing.assert_close(opt.policy_set.success, success, rtol=1e-13, atol=0)
-        torch.testing.assert_close(opt.policy_set.paths, paths, rtol=1e-11, atol=1e-14)
-        torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
         capped_any |= any(capped)
         uncapped_success |= any(s and not c for s, c in zip(successes, capped, strict=True))
         # The cap: no exploration std beyond Σ_start's on any axis.
@@ -161,14 +168,8 @@ def test_the_success_rule_exact_values_when_a_batch_samples_some_policies(target
         best = opt.policy_best_rewards[owner]
         succeed = (torch.arange(k - 1) + t) % 2 == 0
         rewards = torch.where(succeed, best + 0.5 * best.abs() + 1.0, best)
-        paths, success, covs, _, successes = success_rule_by_hand(
-            opt, theta.clone(), rewards, owner
-        )
+        _, successes = tell_and_check_the_rule(opt, theta, rewards, owner)
         assert successes == succeed.tolist()
-        opt.tell(theta, rewards)
-        torch.testing.assert_close(opt.policy_set.success, success, rtol=1e-13, atol=0)
-        torch.testing.assert_close(opt.policy_set.paths, paths, rtol=1e-11, atol=1e-14)
-        torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -199,11 +200,7 @@ def test_the_success_rule_exact_values_with_max_sampled_and_scouts(target):
         succeed = (torch.arange(rows) + t) % 2 == 0
         rewards = torch.where(succeed, best + 0.5 * best.abs() + 1.0, best)
         rewards = torch.cat((rewards, torch.full((theta.shape[0] - rows,), -1e3, dtype=F64)))
-        paths, success, covs, _, _ = success_rule_by_hand(opt, theta.clone(), rewards, owner)
-        opt.tell(theta, rewards)
-        torch.testing.assert_close(opt.policy_set.success, success, rtol=1e-13, atol=0)
-        torch.testing.assert_close(opt.policy_set.paths, paths, rtol=1e-11, atol=1e-14)
-        torch.testing.assert_close(opt.policy_covariances, covs, rtol=1e-11, atol=1e-14)
+        tell_and_check_the_rule(opt, theta, rewards, owner)
 
 
 # ---------------------------------------------------------------------- b. global importance
