@@ -42,21 +42,19 @@ def bimodal(theta: torch.Tensor) -> torch.Tensor:
 TARGETS = (DipoleOptions().success_target, 2.0 / 11.0)
 
 
-def success_rule_dipole(sigma_start: torch.Tensor, target: float) -> Dipole:
+def success_rule_dipole(sigma_start: torch.Tensor, target: float, **changes) -> Dipole:
     """A default Dipole (success-rule exploration, target rate ``target``) with no scouts,
     probes, retirement or merging, after its first tell: one row per policy at the next asks,
-    and nothing but the success rule changes a covariance before the next clustering."""
+    and nothing but the success rule changes a covariance before the next clustering.
+    ``changes``: other options instead of these (scouts, ``max_sampled``)."""
+    options = dict(explore=0.0, hill_valley=False, retire_std=0.0, merge_radius=0.0,
+                   max_sampled=None, max_policies=None)  # fmt: skip
     opt = Dipole(
         torch.zeros(2, dtype=F64),
         sigma_start,
         generator=torch.Generator().manual_seed(0),
         success_target=target,
-        explore=0.0,
-        hill_valley=False,
-        retire_std=0.0,
-        merge_radius=0.0,
-        max_sampled=None,
-        max_policies=None,
+        **(options | changes),
     )
     theta = opt.ask()
     opt.tell(theta, bimodal(theta))
@@ -176,20 +174,8 @@ def test_the_success_rule_exact_values_when_a_batch_samples_some_policies(target
 def test_the_success_rule_exact_values_with_max_sampled_and_scouts(target):
     # The default's batch: max_sampled of the policies, then the scouts' rows (no policy's).
     # The rule updates the sampled policies from their rows alone; the others' stand.
-    opt = Dipole(
-        torch.zeros(2, dtype=F64),
-        torch.diag(torch.tensor([1.0, 0.36], dtype=F64)),
-        generator=torch.Generator().manual_seed(0),
-        success_target=target,
-        explore=0.5,
-        hill_valley=False,
-        retire_std=0.0,
-        merge_radius=0.0,
-        max_sampled=2,
-        max_policies=None,
-    )
-    theta = opt.ask()
-    opt.tell(theta, bimodal(theta))
+    sigma_start = torch.diag(torch.tensor([1.0, 0.36], dtype=F64))
+    opt = success_rule_dipole(sigma_start, target, explore=0.5, max_sampled=2)
     assert opt.num_policies >= 3
     for t in range(3):
         theta = opt.ask()
