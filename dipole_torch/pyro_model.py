@@ -339,7 +339,7 @@ def dp_log_joint(y: Tensor, state: DPMixtureState, alpha: float) -> Tensor:
     prior = state.prior
     check_matrix_shape(y, (state.labels.numel(), prior.dim), "y")
     check_finite(y, "y")
-    state.check(prior.dim, state.labels.numel())  # the model has no empty component
+    state.check(prior.dim)  # the model has no empty component
     counts = state.counts.to(prior.mean_loc.dtype)
     k, n = counts.numel(), counts.sum()
     alpha_t = torch.as_tensor(alpha, dtype=counts.dtype, device=counts.device)
