@@ -457,9 +457,7 @@ class ViapointTask(EpisodicTask):
                     f"obstacles[{j}] must be {{'centre': [x, y, z], 'radius': r}}, got {sphere!r}"
                 )
             centre = _point(sphere["centre"], f"obstacles[{j}].centre", factory)
-            radius = sphere["radius"]
-            if not (isinstance(radius, int | float) and math.isfinite(radius) and radius > 0):
-                raise ValueError(f"obstacles[{j}].radius must be a positive number, got {radius!r}")
+            radius = _radius(sphere["radius"], f"obstacles[{j}].radius")
             for name, point in (("start", self.start), ("target", self.target)):
                 if float(torch.linalg.vector_norm(point - centre)) <= radius:
                     raise ValueError(
@@ -470,8 +468,8 @@ class ViapointTask(EpisodicTask):
             radii.append(float(radius))
         # As given (full precision, plain floats: JSON, checkpoints, configs).
         self._obstacles = [
-            {"centre": [float(x) for x in sphere["centre"]], "radius": float(sphere["radius"])}
-            for sphere in obstacles
+            {"centre": [float(x) for x in sphere["centre"]], "radius": radius}
+            for sphere, radius in zip(obstacles, radii, strict=True)
         ]
         self.obstacle_centres = torch.stack(centres) if centres else torch.zeros(0, 3, **factory)
         self.obstacle_radii = torch.tensor(radii, **factory)  # [J] m
@@ -751,7 +749,7 @@ def _plain(value):
     Python lists and dicts."""
     if isinstance(value, Mapping):
         return {key: _plain(item) for key, item in value.items()}
-    if isinstance(value, (str, bytes, Tensor)) or not hasattr(value, "__iter__"):
+    if isinstance(value, (str, bytes, Tensor, np.ndarray)) or not hasattr(value, "__iter__"):
         return value
     return [_plain(item) for item in value]
 
@@ -785,6 +783,25 @@ def _point(value: Sequence[float], name: str, factory: dict) -> Tensor:
     if point is None or point.shape != (3,) or not torch.isfinite(point).all():
         raise ValueError(f"{name} must be a finite [x, y, z] point (m), got {value!r}")
     return point
+
+
+def _radius(value: float, name: str) -> float:
+    """A finite positive real scalar as a float: a Python number, a NumPy scalar or a 0-d
+    tensor or array, as a point's coordinates may be tensors (a bool is refused: a mistake,
+    not 1 m)."""
+    try:
+        scalar = torch.as_tensor(value)  # its kind and shape; float(value) keeps a float64
+    except (TypeError, ValueError, RuntimeError):
+        scalar = None  # not a number
+    if (
+        scalar is None
+        or scalar.shape != ()
+        or scalar.dtype == torch.bool
+        or scalar.is_complex()
+        or not (math.isfinite(float(value)) and float(value) > 0)
+    ):
+        raise ValueError(f"{name} must be a finite positive number (m), got {value!r}")
+    return float(value)
 
 
 def _alternatives(value: Sequence[Sequence[float]], index: int, factory: dict) -> Tensor:

@@ -8,6 +8,7 @@ import json
 import math
 import re
 
+import numpy as np
 import pytest
 import torch
 from dipole_torch.tasks.viapoint import ViapointTask
@@ -90,7 +91,7 @@ def test_obstacles_from_the_config_and_bad_obstacles():
         compose_config(
             "task=viapoint", "task.env.obstacles=[{centre: [0.4, 0.0, 0.0], radius: big}]"
         )
-    with pytest.raises(ValueError, match=r"obstacles\[0\].radius must be a positive"):
+    with pytest.raises(ValueError, match=r"obstacles\[0\].radius must be a finite positive"):
         task.set_obstacles([{"centre": [0.4, 0.06, 0.0], "radius": -0.1}])
     with pytest.raises(ValueError, match=r"obstacles\[1\].centre must be a finite"):
         task.set_obstacles(
@@ -107,13 +108,45 @@ def test_obstacles_with_other_keys_no_size_a_nested_centre_or_on_the_start_are_r
     good = {"centre": [0.4, 0.06, 0.0], "radius": 0.05}
     for bad, message in (
         ({**good, "colour": "red"}, r"obstacles\[0\] must be \{'centre'"),
-        ({**good, "radius": 0}, r"obstacles\[0\]\.radius must be a positive number, got 0"),
+        (
+            {**good, "radius": 0},
+            r"obstacles\[0\]\.radius must be a finite positive number \(m\), got 0",
+        ),
         ({**good, "centre": [[0.4, 0.06, 0.0]]}, r"obstacles\[0\]\.centre must be a finite"),
         # A sphere whose surface passes through the start, (0.5, -0.35, 0), holds it.
         ({"centre": [0.75, -0.35, 0.0], "radius": 0.25}, r"obstacles\[0\].*holds the start"),
     ):
         with pytest.raises(ValueError, match=message):
             task.with_obstacles([bad])
+
+
+def test_a_radius_is_any_real_scalar_as_a_centre_may_be_a_tensor(task):
+    """A 0-d tensor, a NumPy scalar or 0-d array is a radius, kept as the float it holds
+    (a Python float exactly); a bool, a complex number, a string or a one-element list is not."""
+    centre = torch.tensor([0.4, 0.06, 0.0])
+    for radius, kept in (
+        (0.05, 0.05),
+        (torch.tensor(0.05, dtype=torch.float64), 0.05),
+        (torch.tensor(0.05), float(np.float32(0.05))),
+        (np.float32(0.05), float(np.float32(0.05))),
+        (np.array(0.05), 0.05),
+    ):
+        blocked = task.with_obstacles([{"centre": centre, "radius": radius}])
+        assert blocked.obstacles[0]["radius"] == kept and type(kept) is float
+        assert blocked.obstacle_radii.tolist() == pytest.approx([0.05])
+    for radius in (
+        True,
+        np.bool_(True),
+        torch.tensor(True),
+        torch.tensor(0.05 + 0j),
+        "0.05",
+        [0.05],
+        torch.tensor([0.05]),
+        None,
+        math.inf,
+    ):
+        with pytest.raises(ValueError, match=r"obstacles\[0\]\.radius must be a finite positive"):
+            task.with_obstacles([{"centre": centre, "radius": radius}])
 
 
 def test_editing_the_obstacles_a_task_returns_leaves_the_task_be(task):
