@@ -71,7 +71,9 @@ def train(cfg: DictConfig) -> dict:
             swept = HydraConfig.get().mode == RunMode.MULTIRUN
             elsewhere = (
                 "or give this sweep another hydra.sweep.dir, or a hydra.sweep.subdir that tells "
-                "its runs apart (the budget, device and threads do not name a run's directory)"
+                "its runs apart (the budget, device and threads do not name a run's directory; "
+                "for a sweep over the budget: 'hydra.sweep.subdir=${task.name}_${algo.name}"
+                "_seed${seed}_trials${trials}')"
                 if swept
                 else "or choose another hydra.run.dir"
             )

@@ -351,6 +351,12 @@ def test_a_sweep_whose_runs_share_a_directory_says_how_to_tell_them_apart(tmp_pa
     assert out.returncode == 2
     assert "already holds a run's checkpoint.pt" in out.stderr
     assert "hydra.sweep.subdir" in out.stderr and "hydra.run.dir" not in out.stderr
+    # The subdir it gives for a sweep over the budget runs it.
+    subdir = re.search(r"'(hydra\.sweep\.subdir=[^']*)'", out.stderr).group(1)
+    other = tmp_path / "named"
+    train("-m", "algo=power", "trials=20,30", f"hydra.sweep.dir={other}", subdir)
+    runs = sorted(path.parent.name for path in other.glob("*/results.json"))
+    assert runs == ["multimodal_power_seed0_trials20", "multimodal_power_seed0_trials30"]
 
 
 def test_the_papers_dipole_runs_from_the_command_line(tmp_path):
