@@ -52,8 +52,16 @@ def as_theta0(theta0) -> Tensor:
     elif isinstance(theta0, np.ndarray) and theta0.dtype.kind in "iuf":
         floating = theta0.dtype if theta0.dtype.kind == "f" else np.float64
         theta0 = torch.from_numpy(np.array(theta0, dtype=floating))
+    elif not isinstance(theta0, Tensor):
+        # A number too: Dipole(0.0, 1.0) reads as one parameter, but is more often a slip.
+        one = f" (one parameter: [{theta0!r}])" if _is_number(theta0) else ""
+        raise TypeError(
+            f"theta0 must be [D] parameters (a list, a numpy array or a [D] tensor), got "
+            f"{theta0!r} ({type(theta0).__name__}){one}"
+        )
     check_real_tensor(theta0, "theta0")
-    check_matrix_shape(theta0, (-1,), "theta0")
+    if theta0.dim() != 1:
+        raise ValueError(f"theta0 must have shape [D] (D parameters), got {list(theta0.shape)}")
     check_finite(theta0, "theta0")
     if theta0.shape[0] < 1:
         raise ValueError("theta0 must have at least one parameter, got shape [0]")

@@ -158,7 +158,10 @@ def test_tell_without_ask_and_positive_rewards_without_range():
     [
         ({"sigma_start": -torch.eye(2)}, "sigma_start is not positive definite"),
         ({"sigma_start": torch.eye(3)}, r"sigma_start must have shape \[2, 2\]"),
-        ({"theta0": torch.zeros(2, 1)}, r"theta0 must have shape \[N\]"),
+        (
+            {"theta0": torch.zeros(2, 1)},
+            r"theta0 must have shape \[D\] \(D parameters\), got \[2, 1\]",
+        ),
         ({"theta0": torch.tensor([0.0, float("nan")])}, "theta0 contains non-finite"),
         ({"alpha": 0.0}, "alpha"),
         ({"m": 0}, "m \\(auxiliary components\\)"),

@@ -262,6 +262,14 @@ def test_huge_offsets_with_tiny_exploration_learn_without_raising(name):
         # A nested list was called "not a floating-point torch.Tensor, got list".
         ([[0.0, 0.0]], torch.eye(2), r"theta0 as a list must be \[D\] real numbers.*\[0.0, 0.0\]"),
         (torch.zeros(2), torch.eye(2, dtype=torch.long), "sigma_start must be a floating-point"),
+        # A number was called "not a floating-point torch.Tensor, got float".
+        (
+            0.0,
+            1.0,
+            r"theta0 must be \[D\] parameters .*got 0.0 \(float\) \(one parameter: \[0.0\]\)",
+        ),
+        (None, 1.0, r"theta0 must be \[D\] parameters .*got None \(NoneType\)"),
+        (torch.tensor(0.0), 1.0, r"theta0 must have shape \[D\] \(D parameters\), got \[\]"),
         (torch.zeros(0), torch.eye(0), "theta0 must have at least one parameter"),
         (torch.zeros(2), torch.eye(2) * math.inf, "sigma_start contains non-finite"),
     ],
