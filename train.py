@@ -13,8 +13,8 @@ setting. Outputs, in Hydra's run directory ``outputs/<task>/<algo>/seed<seed>_<t
 * ``checkpoint.pt``: ``resume=<path>`` continues the run exactly, in its directory.
 
 A run evaluates exactly ``trials``: the batch that would cross the budget is cut to its first
-rows, and the checkpoint keeps the run before that batch, so that a resume with a larger
-budget makes the draws of an uninterrupted run. Every output is written atomically; SIGTERM
+rows, and the checkpoint keeps the run before that batch (and the trials it ended at), so
+that a resume with a larger budget makes the draws of an uninterrupted run. Every output is written atomically; SIGTERM
 or SIGINT finish the iteration, write a checkpoint, print the command that resumes and exit
 with status 128 + the signal number; a bad value ends the run with one line and status 2.
 """
@@ -207,6 +207,8 @@ def train(cfg: DictConfig) -> dict:
             if history
             else {},
         }
+        if last_batch_cut:  # the checkpoint holds the run before that batch: say where it ended
+            checkpointer.record_end(optimizer.trials)
         write_results(out, results, optimizer)
         policy_set = results.get("policy_set", {})
         writer.hparams(cfg, best_reward, len(results["policies"]), policy_set.get("scalars"))

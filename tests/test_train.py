@@ -262,6 +262,29 @@ def test_dipole_evaluates_exactly_the_trial_budget(tmp_path):
     a = json.loads((straight / "results.json").read_text())
     b = json.loads((resumed / "results.json").read_text())
     assert a["history"] == b["history"] and a["best_theta"] == b["best_theta"]
+    # The checkpoint says where its run ended: a resume asking for fewer trials (even the
+    # checkpoint's own) would write a shorter run's results over the finished one's.
+    assert checkpoint["run_trials"] == budget
+    finished = (cut / "results.json").read_bytes()
+    refused = train(
+        "task=multimodal",
+        "seed=0",
+        f"trials={before}",
+        f"resume={cut / 'checkpoint.pt'}",
+        check=False,
+    )
+    assert refused.returncode == 2, refused.stderr
+    assert (
+        f"with trials={before}: its run ended at {budget} trials (its checkpoint keeps it at "
+        f"{before}, before the last batch, cut at that budget), and a run cannot go back; "
+        f"give trials={budget} or more"
+    ) in refused.stderr
+    assert (cut / "results.json").read_bytes() == finished
+    # At the budget it ended at, the resume makes the same run again (the same cut batch).
+    train("task=multimodal", "seed=0", f"trials={budget}", f"resume={cut / 'checkpoint.pt'}")
+    again = json.loads((cut / "results.json").read_text())
+    assert again["history"] == results["history"] and again["best_theta"] == results["best_theta"]
+    assert torch.load(cut / "checkpoint.pt", weights_only=True)["run_trials"] == budget
 
 
 def test_resume_continues_exactly(finished_run, tmp_path):

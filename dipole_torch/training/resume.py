@@ -301,8 +301,9 @@ def restore(checkpoint: dict, path: str, optimizer, task_generator, shape: dict,
     """Load the checkpoint's optimizer and episode-generator states; return its history,
     elapsed wall time and block (``None``: the world did not change). ``shape``: this
     config's task dimension and reward range, which must be the checkpoint's; ``budget``:
-    this config's ``trials``, at least the checkpoint's (at the checkpoint's, nothing runs
-    and the results are written from it: a session killed before it wrote them)."""
+    this config's ``trials``, at least the checkpoint's and the trials its run ended at
+    (at the checkpoint's, nothing runs and the results are written from it: a session
+    killed before it wrote them)."""
     saved = {key: checkpoint.get(key, shape[key]) for key in shape}
     saved["reward_range"] = saved["reward_range"] and tuple(saved["reward_range"])
     if saved != shape:
@@ -316,10 +317,21 @@ def restore(checkpoint: dict, path: str, optimizer, task_generator, shape: dict,
         raise CheckpointError(
             f"{path!r} does not fit this optimizer ({type(error).__name__}: {error})"
         ) from None
+    # A run whose last batch was cut at its budget ended past its checkpoint (Checkpointer).
+    ended = int(checkpoint.get("run_trials", optimizer.trials))
     if optimizer.trials > budget:
+        held = f"holds {optimizer.trials} trials already"
+    elif ended > budget:
+        held = (
+            f"ended at {ended} trials (its checkpoint keeps it at {optimizer.trials}, before "
+            "the last batch, cut at that budget)"
+        )
+    else:
+        held = None
+    if held:
         raise CheckpointError(
-            f"cannot resume {path!r} with trials={budget}: its run holds {optimizer.trials} "
-            f"trials already, and a run cannot go back; give trials={optimizer.trials} or more"
+            f"cannot resume {path!r} with trials={budget}: its run {held}, and a run cannot "
+            f"go back; give trials={max(ended, optimizer.trials)} or more"
         )
     return checkpoint["history"], float(checkpoint.get("wall_time_s", 0.0)), checkpoint.get("block")
 
@@ -378,3 +390,10 @@ class Checkpointer:
             self.path,
         )
         self.trials = optimizer.trials
+
+    def record_end(self, trials: int) -> None:
+        """Add to the checkpoint, written before the last batch was cut at the budget, the
+        trials its run ended at (``run_trials``): a resume asking for fewer would write a
+        shorter run's results over the finished one's, and is refused (``restore``)."""
+        saved = load_checkpoint(self.path, required=CHECKPOINT_KEYS, kind="train.py checkpoint")
+        atomic_save({**saved, "run_trials": int(trials)}, self.path)
