@@ -226,7 +226,9 @@ class PolicySearch:
         """The stopping criteria met (pycma's ``stop()``): empty while the run should go on.
 
         ``"max_trials"`` once ``trials >= max_trials`` (a budget you pass), ``"converged"``
-        once every policy's exploration has converged. A run may go on after either."""
+        once every policy's exploration has converged. A run may go on after either.
+        ``max_trials`` must be a whole number >= 0 or ``None`` (a NaN would never be met)."""
+        check_count(max_trials, "max_trials", minimum=0, optional=True)
         met = {}
         if max_trials is not None and self.trials >= max_trials:
             met["max_trials"] = f"{self.trials} trials of {max_trials}"

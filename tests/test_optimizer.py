@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
@@ -638,6 +639,18 @@ def test_stop_meets_the_budget_at_exactly_max_trials(cls):
     assert opt.stop(max_trials=4) == {} and opt.stop(max_trials=3) == {
         "max_trials": "3 trials of 3"
     }
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
+@pytest.mark.parametrize("budget", [math.nan, math.inf, -1, 2.5, "100", True])
+def test_stop_refuses_a_budget_that_is_not_a_whole_number(cls, budget):
+    """``while not opt.stop(max_trials=nan)`` looped for ever (no count is >= NaN), and a
+    budget read from the environment as a string ended in a comparison's TypeError."""
+    opt = cls([0.0, 0.0], 1.0, n0=4, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"max_trials must be an integer >= 0 or None, got"):
+        opt.stop(max_trials=budget)
+    assert opt.stop(max_trials=0) == {"max_trials": "0 trials of 0"}
+    assert opt.stop(max_trials=np.int64(5)) == {} and opt.stop(max_trials=5.0) == {}
 
 
 @pytest.mark.parametrize("cls", [Dipole, Power])
