@@ -227,7 +227,9 @@ def check_asked(asked: Tensor, theta: Tensor, dtype: torch.dtype | None = None) 
         gap = float((asked[row] - theta[row]).abs().max())
         raise ValueError(
             f"theta row {row} is not the row asked (it differs by up to {gap:g}): tell() "
-            "takes the rows of the last ask as asked (a new point is asked, not told)"
+            "takes the rows of the last ask as asked (a new point is asked, not told; to keep "
+            "θ in a box, clipped or within limits, give the optimizer bounds=(lower, upper): "
+            "it asks inside them)"
         )
 
 

@@ -11,6 +11,7 @@ import math
 import warnings
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -349,16 +350,28 @@ class PolicySearch:
         """Report the returns of the parameters from the last ``ask``.
 
         Args:
-            theta: ``[B, D]`` the asked parameters (row i as asked), or only the first
-                ``n < B`` rows of the ask (e.g. to end a run exactly at a trial budget).
+            theta: ``[B, D]`` the asked parameters (row i as asked; the tensor ``ask``
+                returned, or its numpy array), or only the first ``n < B`` rows of the ask
+                (e.g. to end a run exactly at a trial budget).
             rewards: ``[B]`` (or ``[n]``) their returns; all finite (a NaN or inf raises
                 before anything changes), inside ``reward_range`` when a fixed one was given.
 
         If anything raises, the optimizer is left exactly as it was before the call.
         """
         if self._pending is None:
-            raise RuntimeError("tell() called without a preceding ask()")
+            raise RuntimeError(
+                "tell() called without a pending ask(): each ask is told once (a tell of its "
+                "first n rows discards the others, and reevaluate() an ask not yet told); "
+                "ask() again"
+            )
         asked, d = self._pending.shape
+        if isinstance(theta, np.ndarray):  # the asked tensor as numpy (ask().numpy())
+            theta = torch.from_numpy(theta)
+        elif not isinstance(theta, Tensor):
+            raise TypeError(
+                f"theta must be the rows ask() returned (a tensor, or the numpy array of "
+                f"one), got {type(theta).__name__}"
+            )
         check_matrix_shape(theta, (-1, d), "theta")
         check_real_tensor(theta, "theta")  # an integer θ equals the asked rows cast to it
         if not 1 <= theta.shape[0] <= asked:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from dipole_torch.tasks.multimodal import MultimodalTask
+from test_reliability import assert_same
 
 from dipole_torch import Dipole, DipoleOptions, DPSampler, GaussianMixture, Power
 from dipole_torch.result import SearchResult
@@ -147,7 +148,7 @@ def test_bad_input_is_rejected_before_it_changes_anything():
 
 def test_tell_without_ask_and_positive_rewards_without_range():
     opt = Power(torch.zeros(2), torch.eye(2), reward_range="positive")
-    with pytest.raises(RuntimeError, match="without a preceding ask"):
+    with pytest.raises(RuntimeError, match="without a pending ask"):
         opt.tell(torch.zeros(5, 2), torch.ones(5))
     theta = opt.ask()
     with pytest.raises(ValueError, match="rewards must be positive"):
@@ -642,6 +643,30 @@ def test_stop_meets_the_budget_at_exactly_max_trials(cls):
 
 
 @pytest.mark.parametrize("cls", [Dipole, Power])
+def test_tell_takes_the_asked_rows_as_numpy_as_it_takes_the_tensor(cls):
+    """``opt.tell(theta.numpy(), r)`` (rows handed to a numpy simulator and told back) makes
+    the run a tensor tell makes; a list, or rows clipped by the caller, are refused naming
+    what tell takes (and, for clipped rows, the optimizer's bounds)."""
+    runs = []
+    for as_numpy in (False, True):
+        opt = cls([0.0, 0.0], 1.0, n0=4, generator=torch.Generator().manual_seed(0))
+        for _ in range(6):
+            theta = opt.ask()
+            told = theta.numpy() if as_numpy else theta
+            opt.tell(told, -theta.square().sum(-1))
+        runs.append(opt.state_dict())
+    assert_same(*runs)
+    theta = opt.ask()
+    with pytest.raises(TypeError, match=r"theta must be the rows ask\(\) returned .*got list"):
+        opt.tell(theta.tolist(), torch.zeros(theta.shape[0]))
+    with pytest.raises(ValueError, match=r"not the row asked .*give the optimizer bounds="):
+        opt.tell(theta.clamp(-1e-3, 1e-3), torch.zeros(theta.shape[0]))
+    opt.tell(theta[:1], torch.zeros(1))  # the first rows: the others are discarded
+    with pytest.raises(RuntimeError, match=r"without a pending ask\(\): each ask is told once"):
+        opt.tell(theta[1:], torch.zeros(theta.shape[0] - 1))
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
 @pytest.mark.parametrize("budget", [math.nan, math.inf, -1, 2.5, "100", True])
 def test_stop_refuses_a_budget_that_is_not_a_whole_number(cls, budget):
     """``while not opt.stop(max_trials=nan)`` looped for ever (no count is >= NaN), and a
@@ -676,7 +701,7 @@ def test_reevaluate_discards_a_pending_ask(cls):
     theta = opt.ask()
     opt.reevaluate(torch.zeros(opt.num_policies, dtype=F64))
     assert opt.asked_owner is None
-    with pytest.raises(RuntimeError, match="without a preceding ask"):
+    with pytest.raises(RuntimeError, match="without a pending ask"):
         opt.tell(theta, -theta.square().sum(-1))
 
 

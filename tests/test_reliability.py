@@ -214,7 +214,7 @@ def test_tell_without_ask_changes_nothing():
     theta = opt.ask()
     opt.tell(theta, bumps(theta))
     before = opt.state_dict()
-    with pytest.raises(RuntimeError, match="without a preceding ask"):
+    with pytest.raises(RuntimeError, match="without a pending ask"):
         opt.tell(theta, bumps(theta))  # the same batch told twice
     assert_same(opt.state_dict(), before)
 
