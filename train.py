@@ -14,9 +14,10 @@ setting. Outputs, in Hydra's run directory ``outputs/<task>/<algo>/seed<seed>_<t
 
 A run evaluates exactly ``trials``: the batch that would cross the budget is cut to its first
 rows, and the checkpoint keeps the run before that batch (and the trials it ended at), so
-that a resume with a larger budget makes the draws of an uninterrupted run. Every output is written atomically; SIGTERM
-or SIGINT finish the iteration, write a checkpoint, print the command that resumes and exit
-with status 128 + the signal number; a bad value ends the run with one line and status 2.
+that a resume with a larger budget makes the draws of an uninterrupted run. Every output is
+written atomically; SIGTERM or SIGINT finish the iteration, write a checkpoint, print the
+command that resumes and exit with status 128 + the signal number; a bad value ends the run
+with one line and status 2.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ def train(cfg: DictConfig) -> dict:
         policy_set_summary,
         policy_summary,
         repeat_summary,
+        task_returns,
         write_results,
     )
     from dipole_torch.training.signals import StopRequest
@@ -161,7 +163,7 @@ def train(cfg: DictConfig) -> dict:
                     )
                     cover_from = None
                 theta = optimizer.ask(max_rows=rows)
-                rewards = task.evaluate(theta.to(task.device, task.dtype), generator=task_generator)
+                rewards = task_returns(task, theta.to(task.device, task.dtype), task_generator)
                 optimizer.tell(theta, rewards)
                 history.append(writer.log_iteration(optimizer))
                 progress.update(optimizer.trials, theta.shape[0], history[-1])

@@ -826,6 +826,50 @@ def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_pa
     assert not (run / "checkpoint.pt").exists()  # before the first trial
 
 
+def test_a_task_returning_numpy_runs_as_it_does_with_tensors_and_a_wrong_shape_stops_it(
+    tmp_path, monkeypatch
+):
+    """A custom task wrapping a numpy simulator returns numpy: the run trained its whole
+    budget (``tell`` takes numpy), then ended in ``torch.stack``'s TypeError with no
+    results.json. A return of another shape stops the run at its first batch, naming it."""
+    (tmp_path / "odd_tasks.py").write_text(
+        "from dipole_torch.tasks.multimodal import MultimodalTask\n\n\n"
+        "class NumpyReturns(MultimodalTask):\n"
+        "    def evaluate(self, theta, generator=None):\n"
+        "        return super().evaluate(theta, generator).numpy()\n\n\n"
+        "class Column(MultimodalTask):\n"
+        "    def evaluate(self, theta, generator=None):\n"
+        "        return super().evaluate(theta, generator)[:, None]\n"
+    )
+    (tmp_path / "odd_configs" / "task").mkdir(parents=True)
+    for name, target in (("numpy_returns", "NumpyReturns"), ("column", "Column")):
+        (tmp_path / "odd_configs" / "task" / f"{name}.yaml").write_text(
+            "defaults:\n  - multimodal\n  - _self_\n"
+            f"name: {name}\nenv:\n  _target_: odd_tasks.{target}\n"
+        )
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    results = {}
+    for task in ("numpy_returns", "multimodal"):
+        train(
+            "hydra.searchpath=[file://odd_configs]", f"task={task}", "trials=60",
+            f"hydra.run.dir={tmp_path / task}", cwd=tmp_path,
+        )  # fmt: skip
+        results[task] = json.loads((tmp_path / task / "results.json").read_text())
+    for key in ("trials", "best_reward", "best_theta", "policies", "history"):
+        assert results["numpy_returns"][key] == results["multimodal"][key], key
+    run = tmp_path / "column"
+    result = train(
+        "hydra.searchpath=[file://odd_configs]", "task=column", f"hydra.run.dir={run}",
+        cwd=tmp_path, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert (
+        "error: task.env: Column.evaluate's returns must have shape [10] (one per row of θ), "
+        "got [10, 1]"
+    ) in result.stderr
+    assert not (run / "checkpoint.pt").exists()  # at the first batch
+
+
 @pytest.mark.parametrize("evaluations", [1, 3])
 def test_two_runs_of_a_noisy_task_write_the_same_results(tmp_path, evaluations):
     # The policies' returns in results.json were drawn from the global RNG on a noisy task:

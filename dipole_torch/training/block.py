@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 from dipole_torch.training.board import Board, policy_figure
-from dipole_torch.training.results import policy_set_line
+from dipole_torch.training.results import policy_set_line, task_returns
 
 __all__ = ["block_the_route"]
 
@@ -39,7 +39,7 @@ def block_the_route(task, optimizer, block, board: Board, generator):
     obstacle, description = task.blocking_obstacle(means, block.radius, block.threshold)
     known = policy_set_line(task, means)  # e.g. the routes the policies take, before
     task = task.with_obstacles([*task.obstacles, obstacle])
-    returns = task.evaluate(means, generator=generator)
+    returns = task_returns(task, means, generator)
     optimizer.reevaluate(returns)
     switched = ids[int(returns.argmax())]
     title = f"after the block: the same policies, re-evaluated ({optimizer.trials} trials)"

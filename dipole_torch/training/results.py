@@ -11,6 +11,8 @@ import torch
 
 from dipole_torch import Dipole
 from dipole_torch.checkpoint import atomic_save, atomic_write_text
+from dipole_torch.reward import check_rewards
+from dipole_torch.training import checks
 
 __all__ = [
     "check_task_hooks",
@@ -18,9 +20,29 @@ __all__ = [
     "policy_set_summary",
     "policy_summary",
     "repeat_summary",
+    "task_returns",
     "task_scalars",
     "write_results",
 ]
+
+
+def task_returns(task, theta: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """``task.evaluate(theta, generator=generator)``: ``[B]`` returns, one per row of
+    ``theta: [B, D]``; a tensor as the task gives it, a numpy array or a list of numbers (a
+    task wrapping a numpy simulator) as a float64 tensor, as ``tell`` takes them. Another
+    shape or kind is a ``ValueError`` / ``TypeError`` naming the task's method, at the first
+    batch (the end of a run stacks the returns of its policies)."""
+    returns = task.evaluate(theta, generator=generator)
+    name = f"{type(task).__name__}.evaluate's returns"
+    with checks.reported("task.env"):  # one line and status 2, as a bad config value
+        if not isinstance(returns, torch.Tensor):
+            return check_rewards(returns, theta.shape[0], "row of θ", name)
+        if returns.shape != (theta.shape[0],):
+            raise ValueError(
+                f"{name} must have shape [{theta.shape[0]}] (one per row of θ), got "
+                f"{list(returns.shape)}"
+            )
+    return returns
 
 
 def policy_summary(task, optimizer, generator: torch.Generator | None = None) -> list[dict]:
@@ -34,9 +56,9 @@ def policy_summary(task, optimizer, generator: torch.Generator | None = None) ->
     rollouts = mean_evaluations(optimizer)
     episodes = generator if rollouts > 1 else None
     with torch.no_grad():
-        returns = torch.stack(
-            [task.evaluate(means, generator=episodes) for _ in range(rollouts)]
-        ).mean(0)
+        returns = torch.stack([task_returns(task, means, episodes) for _ in range(rollouts)]).mean(
+            0
+        )
     weights = optimizer.policies.weights
     descriptions = task.describe_policies(means)
     ids = optimizer.policy_set.ids.tolist()
