@@ -586,6 +586,13 @@ class PolicySearch:
             kind = state.get("kind")
             origin = "not an optimizer's state_dict" if kind is None else f"from a {kind}"
             raise ValueError(f"state_dict is {origin}, not a {type(self).__name__}'s")
+        saved_theta0 = state.get("settings", {}).get("theta0")
+        if isinstance(saved_theta0, Tensor) and tuple(saved_theta0.shape) != (self.dim,):
+            raise ValueError(
+                f"state_dict was saved by a {type(self).__name__} of dimension D = "
+                f"{saved_theta0.numel()}; this one has D = {self.dim} (its theta0 has "
+                f"{self.dim} parameters)"
+            )
         snapshot = self._snapshot()
         try:
             self._load_state_dict(state)  # (what does not fit is named first)

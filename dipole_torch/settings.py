@@ -3,6 +3,8 @@ an optimizer built with other settings (``PolicySearch._settings``) and names th
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -42,8 +44,22 @@ def setting_differences(saved: dict, own: dict) -> list[str]:
             return str(value.tolist()) if small else f"a tensor of shape {list(value.shape)}"
         return repr(value)
 
+    def difference(key: str, a, b) -> str:
+        large = isinstance(a, Tensor) and isinstance(b, Tensor) and a.numel() > 4
+        if not (large and a.shape == b.shape):
+            return f"{key}: {shown(a)} saved, {shown(b)} here"
+        # Too large to show whole: where the two differ most (a non-finite gap first).
+        a, b = a.detach().cpu().to(DTYPE), b.detach().cpu().to(DTYPE)
+        gap = (a - b).abs().nan_to_num(nan=math.inf)
+        gap[(a == b) | (a.isnan() & b.isnan())] = 0.0  # (equal infinities do not differ)
+        at = tuple(int(i) for i in torch.unravel_index(gap.argmax(), gap.shape))
+        return (
+            f"{key}: [{', '.join(map(str, a.shape))}] tensors that differ most at "
+            f"{list(at)}: {float(a[at]):g} saved, {float(b[at]):g} here"
+        )
+
     return [
-        f"{key}: {shown(saved[key])} saved, {shown(own[key])} here"
+        difference(key, saved[key], own[key])
         for key in saved
         if key in own and not same(saved[key], own[key])
     ]

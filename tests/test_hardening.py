@@ -384,7 +384,9 @@ def test_bad_returns_to_reevaluate_are_refused_naming_them(kind, bad):
 # ---------------------------------------------------------------------- checkpoints
 @pytest.mark.parametrize("kind", ["dipole", "paper", "power"])
 @pytest.mark.parametrize("started", [False, True])
-def test_a_state_of_another_dimension_is_refused_naming_the_key(kind, started):
+def test_a_state_of_another_dimension_is_refused_naming_both(kind, started):
+    """It was refused naming an internal key (``state_dict['thetas'] must have shape
+    [N, 2]``)."""
     other = build(kind, reward_range=(-10.0, 2.0), dim=3)
     if started:
         for _ in range(3):
@@ -394,8 +396,11 @@ def test_a_state_of_another_dimension_is_refused_naming_the_key(kind, started):
     theta = opt.ask()
     opt.tell(theta, quadratic(theta))
     before = opt.state_dict()
-    with pytest.raises(ValueError, match=r"state_dict\['thetas'\] must have shape \[N, 2\]"):
-        opt.load_state_dict(other.state_dict())
+    for strict in (True, False):
+        with pytest.raises(
+            ValueError, match=r"of dimension D = 3; this one has D = 2 \(its theta0"
+        ):
+            opt.load_state_dict(other.state_dict(), strict=strict)
     assert same_state(opt.state_dict(), before)
     for _ in range(3):  # still usable
         theta = opt.ask()
@@ -439,15 +444,23 @@ def test_a_refused_state_changes_nothing(kind):
          r"exploration_decay: 1.0 saved, 0.9 here"),
         ("power", lambda: Power(torch.zeros(2, dtype=F64), 1.0, min_exploration=0.5),
          r"min_exploration: 0.01 saved, 0.5 here"),
+        # Too large to show whole (a tensor of shape [3, 3] saved, and one here, it said):
+        # where the two differ most.
+        ("dipole3", lambda: Dipole(torch.zeros(3, dtype=F64), [1.0, 1.0, 3.0]),
+         r"sigma_start: \[3, 3\] tensors that differ most at \[2, 2\]: 1 saved, 9 here"),
+        ("dipole3", lambda: Dipole(torch.zeros(3, dtype=F64), 1.0, bounds=(-3, 3)),
+         r"bounds: None saved, a tensor of shape \[2, 3\] here"),
     ],
 )  # fmt: skip
 def test_a_state_saved_with_other_settings_is_refused_naming_them(kind, other, named):
     """A state holds the run, not the settings its optimizer was built with: loaded into one
     built otherwise, the run went on silently under the other options, Σ_start or θ0."""
-    saved = build(kind)
+    dim = 3 if kind.endswith("3") else 2
+    saved = build(kind.rstrip("3"), dim=dim)
+    reward = quadratic if dim == 2 else lambda theta: -theta.square().sum(-1)
     for _ in range(3):
         theta = saved.ask()
-        saved.tell(theta, quadratic(theta))
+        saved.tell(theta, reward(theta))
     state = saved.state_dict()
     opt = other()
     before = opt.state_dict()
