@@ -117,8 +117,9 @@ class CartPoleTask(ControlTask):
       which removes the per-op overhead that dominates small batches, at the price of a
       one-off compilation (cached by inductor afterwards). The maths is the same code,
       compiled or not.
-    * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
-      given (``"cpu"``, float32; a floating dtype or its name, ``"float64"``).
+    * ``device``: where torch rollouts run (``"cpu"``, ``"cuda"``, ...).
+    * ``dtype``: the precision torch rollouts run in and returns are given in (float32; a
+      floating dtype or its name, ``"float64"``; set in code, not a config key).
 
     ## Deviations from the paper
 

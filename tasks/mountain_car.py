@@ -92,8 +92,9 @@ class MountainCarTask(ControlTask):
     * ``compile``, ``chunk``: run the torch rollout in chunks of ``chunk`` (10) steps, each
       through ``torch.compile`` when ``compile`` is true (as
       ``dipole_torch.tasks.cartpole.CartPoleTask``).
-    * ``device``, ``dtype``: where and in which precision torch rollouts run and returns are
-      given (``"cpu"``, float32; a floating dtype or its name, ``"float64"``).
+    * ``device``: where torch rollouts run (``"cpu"``, ``"cuda"``, ...).
+    * ``dtype``: the precision torch rollouts run in and returns are given in (float32; a
+      floating dtype or its name, ``"float64"``; set in code, not a config key).
 
     ## Deviations from the paper
 

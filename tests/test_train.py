@@ -669,6 +669,14 @@ def test_help_lists_every_field_with_its_help():
         "accept_unjudged=true, max_sampled=null, unjudged_share=0.5 ==" in text
     )
     assert "trials: int = the value of task.trials" in text
+    # The classic-control tasks' device said "where and in which precision ... a floating
+    # dtype or its name" (their docstrings' entry for device and dtype together), and
+    # task.env.device=float64 was refused: dtype is not a config key.
+    assert (
+        text.count('task.env.device: any = the value of device where torch rollouts run ("cpu"')
+        == 2
+    )
+    assert "dtype or its name" not in text
     assert "python train.py [task=<task>]" in text
     assert "task.block.trial: int trials before the block" in text  # a section that may be null
     assert "base_viapoint" not in text and "dipole_torch_task" not in text  # no schema offered
