@@ -182,7 +182,8 @@ def bad_rewards(data, accepted, n: int, first: bool = False):
 def bad_theta(data, asked: Tensor):
     """A θ that must be refused in place of the rows ``asked [n, D]`` (well-formed rewards)."""
     n, d = asked.shape
-    kinds = ["1-d", "3-d", "no rows", "extra row", "wrong D", "nan", "inf", "list", "numpy"]
+    kinds = ["1-d", "3-d", "no rows", "extra row", "wrong D", "nan", "inf", "list"]
+    kinds += ["numpy integers", "numpy not asked"]  # (the asked rows as numpy are told)
     kinds += ["complex", "meta", "integers", "bools", "not asked"]
     kind = data.draw(st.sampled_from(kinds), label="bad theta")
     if kind == "1-d":
@@ -204,8 +205,10 @@ def bad_theta(data, asked: Tensor):
         return bad, n
     if kind == "list":
         return asked.tolist(), n
-    if kind == "numpy":
-        return asked.numpy(), n
+    if kind == "numpy integers":
+        return asked.numpy().astype(np.int64), n
+    if kind == "numpy not asked":
+        return asked.numpy() + 1.0, n
     if kind == "complex":
         return asked.to(torch.complex128), n
     if kind == "meta":
