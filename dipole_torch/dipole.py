@@ -189,6 +189,10 @@ class Dipole(PolicySearch):
 
     # ------------------------------------------------------------------ ask
     def _batch_size(self) -> int:
+        # The options the next ask draws under: the batch read at coverage_from's trial, before
+        # that ask, was the one before covering (train.py cut the first covering batch to it,
+        # and a run resumed at that trial, whose load switches, did not).
+        self._cover_from_trial()
         sampled = (
             self.scouting.sampled_policies(self).numel() if self.policy_set.any_active() else 0
         )
@@ -206,8 +210,9 @@ class Dipole(PolicySearch):
         """With ``coverage_from``: for the batches asked from that trial on, the candidates
         the probe cannot judge are accepted, every active policy is sampled and
         ``coverage_max_policies`` caps the active ones; before it, the options as set. Set
-        from the trial count at each ask (and at load, so a resumed run switches as it ran)
-        and kept through the batch's tell: a run whose batches were all asked before the
+        from the trial count at each ask and each ``batch_size`` read (which counts the rows
+        of that ask), and at load (so a resumed run switches as it ran), and kept through the
+        batch's tell: a run whose batches were all asked before the
         trial is the run without the option, draw for draw."""
         start = self.options.coverage_from
         if start is None:

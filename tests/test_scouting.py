@@ -314,6 +314,24 @@ def test_without_coverage_from_coverage_max_policies_changes_nothing():
     assert torch.equal(plain.policy_means, capped.policy_means) and capped.max_policies == 8
 
 
+def test_batch_size_read_before_the_first_covering_ask_is_that_asks_rows():
+    """train.py reads ``batch_size`` before each ask and asks that many rows at most. Read
+    before the ask that switches to covering, it was the batch under the options before, so
+    the first covering batch was cut to it; a run stopped at that trial and resumed (its
+    load switches) asked the whole batch and went on otherwise (``tests/fuzz_train.py``,
+    seed 4101: ``task=viapoint_blocked`` with ``coverage_from=300``)."""
+    grew = False
+    for seed in range(3):
+        opt = build(1, seed=seed, coverage_from=200)
+        while opt.trials < 260:
+            size, active = opt.batch_size, int(opt.active.sum())
+            theta = opt.ask()
+            assert theta.shape[0] == size, (seed, opt.trials)
+            grew |= opt.trials >= 200 and active > 1  # (more rows than max_sampled=1 drew)
+            opt.tell(theta, equal_maxima(theta))
+    assert grew
+
+
 @pytest.mark.parametrize("saved_at", [150, 250])
 def test_a_run_with_coverage_from_resumes_as_it_ran_on_either_side_of_it(saved_at):
     def make(seed):
