@@ -228,9 +228,14 @@ def run_case(seed: int, budget: int | None = None, optimizer: str = "dipole") ->
     checkpoints = [trials // 4, trials // 2, 3 * trials // 4]
     try:
         while opt.trials < trials:
+            size = opt.batch_size  # (train.py fits the next batch to its budget by it)
             theta = opt.ask()
             if theta.shape[0] == 0 or not torch.isfinite(theta).all():
                 return f"an empty or non-finite ask at {opt.trials} trials | {case}"
+            if theta.shape[0] != size:
+                return (
+                    f"batch_size {size}, an ask of {theta.shape[0]} rows at {opt.trials} | {case}"
+                )
             opt.tell(theta, reward(theta))
             if checkpoints and opt.trials >= checkpoints[0]:
                 checkpoints.pop(0)
