@@ -27,8 +27,9 @@ Each seed draws, from its own ``random.Random``:
 A case fails when it raises anything but the clear errors for inputs that the options refuse
 (``ValueError``/``TypeError`` of an option set, returns that the reward range refuses:
 ``reward_range="positive"``, or a fixed range they fall outside), asks an empty or non-finite
-batch, or ends with non-finite policy means or a non-finite ``best()``. Printed: one line per
-failure (seed, error, the case's settings, the traceback's end), cases slower than a minute,
+batch or one of another size than ``batch_size`` said just before, or ends with non-finite
+policy means or a non-finite ``best()``. Printed: one line per failure (seed, error, the
+case's settings, the traceback's end), cases slower than a minute,
 and the counts of cases, failures and cases refused with a clear error.
 """
 
