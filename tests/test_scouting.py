@@ -332,6 +332,25 @@ def test_batch_size_read_before_the_first_covering_ask_is_that_asks_rows():
     assert grew
 
 
+@pytest.mark.parametrize(
+    "changes", [{}, {"coverage_from": 200}, {"coverage_from": 200, "best_evaluations": 2}]
+)
+def test_reading_batch_size_changes_no_draw(changes):
+    """train.py reads ``batch_size`` before each ask, a library loop need not: the two runs
+    are one (the read sets the covering options as the ask would, from the same count)."""
+    runs = []
+    for read in (False, True):
+        opt = build(1, **changes)
+        while opt.trials < 300:
+            if read:
+                opt.batch_size  # noqa: B018
+            theta = opt.ask()
+            opt.tell(theta, equal_maxima(theta))
+        runs.append(opt)
+    assert torch.equal(runs[0].archive.thetas, runs[1].archive.thetas)
+    assert torch.equal(runs[0].policy_means, runs[1].policy_means)
+
+
 @pytest.mark.parametrize("saved_at", [150, 250])
 def test_a_run_with_coverage_from_resumes_as_it_ran_on_either_side_of_it(saved_at):
     def make(seed):
