@@ -114,8 +114,8 @@ def test_on_noisy_returns_a_description_is_followed_by_the_mean_that_orders_it()
     }
     lines = summary("dipole", "viapoint", results, "x").splitlines()
     assert lines[1:4] == [
-        "  policy 2: route b: return 0.93 (the mean of 4: 0.97)",
-        "  policy 1: route a: return 0.999 (the mean of 4: 0.95)",
+        "  policy 2: route b: return 0.93 (one rollout; the mean of 4: 0.97)",
+        "  policy 1: route a: return 0.999 (one rollout; the mean of 4: 0.95)",
         "  policy 3: return 0.5",
     ]
 

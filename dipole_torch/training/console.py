@@ -84,7 +84,9 @@ def summary(name: str, task_name: str, results: dict, out) -> str:
     for policy in sorted(policies, key=lambda p: -p["return_of_mean"]):
         described = policy["description"] or f"return {_number(policy['return_of_mean'])}"
         if policy["description"] and averaged > 1:  # the task's one rollout, then the order's
-            described += f" (the mean of {averaged}: {_number(policy['return_of_mean'])})"
+            described += (
+                f" (one rollout; the mean of {averaged}: {_number(policy['return_of_mean'])})"
+            )
         lines.append(f"  policy {policy['id']}: {described}")
     together = results.get("policy_set", {}).get("description")
     if together:  # the task's line on them all (the viapoint task: the routes found)
