@@ -22,6 +22,7 @@ with one line and status 2.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
@@ -226,6 +227,12 @@ def main():
         from dipole_torch.training.config import print_help
 
         return print_help(sys.argv[1:], CONFIGS)
+    from dipole_torch.training import checks
+    from dipole_torch.training.config import Config
+
+    # trails=60: Hydra would suggest +trails=60; the nearest setting is named instead.
+    settings = [field.name for field in dataclasses.fields(Config)]
+    checks.check_command_line(sys.argv[1:], [*settings, "task_algo", "hydra"])
     return train()
 
 

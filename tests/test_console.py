@@ -186,6 +186,27 @@ def test_a_bad_value_is_one_line_naming_it_and_exit_status_2(overrides, line, tm
     assert errors[0] in (tmp_path / "train.log").read_text()
 
 
+@pytest.mark.parametrize(
+    "overrides, line",
+    [
+        (["trails=60"], "error: unknown key trails (trails=60): no setting of that name (did you "
+                        "mean trials? python train.py --help lists every key)"),
+        (["-m", "sed=0,1"], "error: unknown key sed (sed=0,1): no setting of that name (did you "
+                            "mean seed?"),
+        (["--cfg", "job", "xyz=1"], "error: unknown key xyz (xyz=1): no setting of that name (a "
+                                    "misspelling?"),
+    ],
+)  # fmt: skip
+def test_a_misspelled_key_at_the_root_is_named_before_hydra_composes(overrides, line, tmp_path):
+    """Hydra said "To append to your config use +trails=60", and the run's own check named
+    trials only after that detour; the command ends before Hydra makes the run's directory."""
+    result = run(*overrides, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path}")
+    assert result.returncode == 2, result.stdout + result.stderr
+    errors = [text for text in result.stderr.splitlines() if text.strip()]
+    assert len(errors) == 1 and errors[0].startswith(line), result.stderr
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_second_signal_stops_at_once_without_a_traceback(tmp_path):
     process = subprocess.Popen(
         [sys.executable, str(ROOT / "train.py"), "task=viapoint", "trials=3000", "progress=false",

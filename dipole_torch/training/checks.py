@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dipole_torch.checkpoint import CheckpointError
 
-__all__ = ["ConfigValueError", "check_config", "reported"]
+__all__ = ["ConfigValueError", "check_command_line", "check_config", "reported"]
 
 EXIT_BAD_CONFIG = 2
 # torch.Generator seeds are below 2**64, and train.py seeds the episodes' with seed + 1000003.
@@ -108,6 +108,39 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigValueError(
             "resume", cfg.resume, f"resume must be the path of a checkpoint.pt, got {cfg.resume!r}"
         )
+
+
+def check_command_line(argv: list[str], root_keys: list[str]) -> None:
+    """Before Hydra composes the config: an override of a key at the config's root that no
+    setting has (``trails=60``; ``root_keys``: the settings, the config groups and ``hydra``)
+    ends the command with one line naming the nearest key and exit status 2. Hydra's own
+    message suggests adding the key (``+trails=60``), which ``check_config`` then refuses: a
+    detour. Keys inside a section, and keys added with ``+``, are left to those two."""
+    try:
+        from hydra._internal.utils import get_args_parser
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        parsed, rest = get_args_parser().parse_known_args(argv)
+        overrides = OverridesParser.create().parse_overrides(
+            [*parsed.overrides, *(a for a in rest if "=" in a and not a.startswith("-"))]
+        )
+    except Exception:  # noqa: BLE001 (Hydra reports what it cannot parse, in its words)
+        return
+    for override in overrides:
+        key = override.key_or_group
+        if override.is_add() or override.is_force_add() or override.is_delete():
+            continue
+        if override.package is not None or key.split(".")[0] in root_keys:
+            continue
+        close = difflib.get_close_matches(key, root_keys, n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]}?" if close else "a misspelling?"
+        sys.stdout.flush()
+        print(
+            f"error: unknown key {key} ({override.input_line}): no setting of that name "
+            f"({hint} python train.py --help lists every key)",
+            file=sys.stderr,
+        )
+        raise SystemExit(EXIT_BAD_CONFIG)
 
 
 def _closest_key(key: str, cfg: DictConfig, unknown: list[str]) -> str | None:
