@@ -808,6 +808,12 @@ def test_the_policy_set_summary_and_results_json(tmp_path):
         run_results.write_results(tmp_path, {"best_reward": math.nan}, opt)
 
 
+def train_custom(directory, configs: str, *overrides: str, check: bool = True):
+    """``train`` in ``directory`` with the config directory ``configs`` (there) on Hydra's
+    search path: a task of the test's own."""
+    return train(f"hydra.searchpath=[file://{configs}]", *overrides, cwd=directory, check=check)
+
+
 def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_path, monkeypatch):
     (tmp_path / "bad_task.py").write_text(
         "from dipole_torch.tasks.multimodal import MultimodalTask\n\n\n"
@@ -822,10 +828,7 @@ def test_a_task_whose_figures_cannot_be_logged_stops_the_run_at_its_start(tmp_pa
     )
     monkeypatch.setenv("PYTHONPATH", str(tmp_path))
     run = tmp_path / "run"
-    result = train(
-        "hydra.searchpath=[file://bad_configs]", "task=bad", f"hydra.run.dir={run}",
-        cwd=tmp_path, check=False,
-    )  # fmt: skip
+    result = train_custom(tmp_path, "bad_configs", "task=bad", f"hydra.run.dir={run}", check=False)
     assert result.returncode == 2, result.stderr
     assert (
         "error: task.env: Bad.policy_scalars: 'optima' must be a number, got 'several'"
@@ -858,18 +861,16 @@ def test_a_task_returning_numpy_runs_as_it_does_with_tensors_and_a_wrong_shape_s
     monkeypatch.setenv("PYTHONPATH", str(tmp_path))
     results = {}
     for task in ("numpy_returns", "multimodal"):
-        train(
-            "hydra.searchpath=[file://odd_configs]", f"task={task}", "trials=60",
-            f"hydra.run.dir={tmp_path / task}", cwd=tmp_path,
-        )  # fmt: skip
+        train_custom(
+            tmp_path, "odd_configs", f"task={task}", "trials=60", f"hydra.run.dir={tmp_path / task}"
+        )
         results[task] = json.loads((tmp_path / task / "results.json").read_text())
     for key in ("trials", "best_reward", "best_theta", "policies", "history"):
         assert results["numpy_returns"][key] == results["multimodal"][key], key
     run = tmp_path / "column"
-    result = train(
-        "hydra.searchpath=[file://odd_configs]", "task=column", f"hydra.run.dir={run}",
-        cwd=tmp_path, check=False,
-    )  # fmt: skip
+    result = train_custom(
+        tmp_path, "odd_configs", "task=column", f"hydra.run.dir={run}", check=False
+    )
     assert result.returncode == 2, result.stderr
     assert (
         "error: task.env: Column.evaluate's returns must have shape [10] (one per row of θ), "
