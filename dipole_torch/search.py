@@ -198,7 +198,8 @@ class PolicySearch:
     @property
     def policies(self) -> GaussianMixture:
         """The current policies as a mixture over θ: component k is N(θ_k, Σ_k), weighted by
-        the number of kept samples it owns (at least 1), in ``theta0``'s dtype.
+        the number of kept samples it owns (at least 1), in ``theta0``'s dtype (float32 for
+        a half-precision ``theta0``: a mixture's factorisations need float32 at least).
 
         The covariances are factorised in float64 before the cast: a converged policy's
         exploration can be too ill-conditioned for a float32 Cholesky."""
@@ -208,9 +209,10 @@ class PolicySearch:
         mixture = GaussianMixture(  # on copies: editing it leaves the run be
             weights, self.policy_means.clone(), self.policy_covariances.clone(), validate_args=False
         )
-        if self.dtype != DTYPE:
+        dtype = self.dtype if torch.finfo(self.dtype).bits >= 32 else torch.float32
+        if dtype != DTYPE:
             mixture.scale_tril  # noqa: B018 (factorised here, carried by .to())
-        return mixture.to(self.dtype)
+        return mixture.to(dtype)
 
     def best(self) -> tuple[Tensor, float]:
         """The best parameters evaluated so far and their return: ``([D], float)``.

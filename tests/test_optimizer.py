@@ -643,6 +643,22 @@ def test_stop_meets_the_budget_at_exactly_max_trials(cls):
 
 
 @pytest.mark.parametrize("cls", [Dipole, Power])
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_a_half_precision_run_gives_its_policies_in_float32(cls, dtype):
+    """A half-precision θ0 asks and tells in its dtype, but ``policies`` raised (a mixture's
+    Cholesky has no half kernel), with "cast them with .float()", which a caller cannot do."""
+    opt = cls(torch.zeros(2, dtype=dtype), 1.0, generator=torch.Generator().manual_seed(0))
+    for _ in range(5):
+        theta = opt.ask()
+        opt.tell(theta, -theta.float().square().sum(-1))
+    assert theta.dtype == dtype and opt.best()[0].dtype == dtype
+    mixture = opt.policies
+    assert mixture.means.dtype == torch.float32
+    assert torch.allclose(mixture.means, opt.policy_means.float())
+    assert bool(mixture.log_prob(torch.zeros(2)).isfinite())
+
+
+@pytest.mark.parametrize("cls", [Dipole, Power])
 def test_tell_takes_the_asked_rows_as_numpy_as_it_takes_the_tensor(cls):
     """``opt.tell(theta.numpy(), r)`` (rows handed to a numpy simulator and told back) makes
     the run a tensor tell makes; a list, or rows clipped by the caller, are refused naming
