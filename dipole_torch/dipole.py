@@ -163,6 +163,11 @@ class Dipole(PolicySearch):
     @classmethod
     def paper(cls, theta0: Theta0, sigma_start: SigmaStart, **changes: Any) -> Dipole:
         """DIPOLE exactly as in the paper (``DipoleOptions.paper``), then ``changes``."""
+        if "options" in changes:  # (DipoleOptions' own error named no such option)
+            raise TypeError(
+                "Dipole.paper sets the options itself (the paper's, then the changes given as "
+                "keywords); for options of your own, Dipole(theta0, sigma_start, options)"
+            )
         generator, bounds = changes.pop("generator", None), changes.pop("bounds", None)
         return cls(theta0, sigma_start, DipoleOptions.paper(**changes),
                    generator=generator, bounds=bounds)  # fmt: skip

@@ -228,6 +228,9 @@ def test_the_papers_set_and_a_checked_copy():
         options.explore = 0.3  # type: ignore[misc]
     mixed = Dipole(torch.zeros(2), 1.0, options=paper, M=3).options
     assert mixed == paper.replace(M=3)
+    # DipoleOptions' own error ("unexpected keyword argument 'options'") named no way out.
+    with pytest.raises(TypeError, match=r"Dipole.paper sets the options itself .*Dipole\(theta0"):
+        Dipole.paper(torch.zeros(2), 1.0, options=DipoleOptions())
 
 
 # A value other than each option's default.
