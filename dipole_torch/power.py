@@ -54,13 +54,19 @@ def power_update(
     Returns:
         ``[K, D]`` updated parameters θ^(n).
     """
-    if validate and (samples.shape[:-1] != weights.shape or samples.shape[0] != mean.shape[0]):
+    if validate and (
+        mean.dim() != 2
+        or samples.dim() != 3
+        or samples.shape[:-1] != weights.shape
+        or samples.shape[0] != mean.shape[0]
+        or samples.shape[-1] != mean.shape[-1]
+    ):
         raise ValueError(
             f"power_update: expected mean [K, D], samples [K, M, D], weights [K, M]; got "
             f"{list(mean.shape)}, {list(samples.shape)}, {list(weights.shape)}"
         )
-    if validate and (weights < 0).any():
-        raise ValueError("power_update: weights must be non-negative")
+    if validate and not bool((weights >= 0).all()):  # (a NaN is not >= 0 either)
+        raise ValueError("power_update: weights must be non-negative numbers (no NaN)")
     total = weights.sum(-1, keepdim=True)  # [K, 1]
     step = (weights.unsqueeze(-1) * (samples - mean.unsqueeze(-2))).sum(-2)
     return torch.where(

@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 from test_optimizer import started_dipole, two_optima
@@ -24,6 +26,23 @@ def test_power_update_keeps_a_policy_without_samples():
     mean = torch.ones(2, 3, dtype=F64)
     out = power_update(mean, torch.zeros(2, 4, 3, dtype=F64), torch.zeros(2, 4, dtype=F64))
     assert torch.equal(out, mean)
+
+
+@pytest.mark.parametrize(
+    "mean, samples, weights, message",
+    [
+        # A mean of another D ended in torch's broadcasting error.
+        (torch.zeros(2, 3), torch.zeros(2, 4, 2), torch.ones(2, 4), "expected mean"),
+        (torch.zeros(3), torch.zeros(2, 4, 3), torch.ones(2, 4), "expected mean"),
+        (torch.zeros(2, 3), torch.zeros(2, 4, 3), torch.ones(2, 3), "expected mean"),
+        (torch.zeros(2, 3), torch.zeros(2, 4, 3), -torch.ones(2, 4), "non-negative"),
+        # NaN weights passed as padding: the mean came back unchanged.
+        (torch.zeros(2, 3), torch.zeros(2, 4, 3), torch.full((2, 4), math.nan), "no NaN"),
+    ],
+)
+def test_power_update_refuses_shapes_and_weights_it_cannot_take(mean, samples, weights, message):
+    with pytest.raises(ValueError, match=f"power_update: .*{message}"):
+        power_update(mean, samples, weights)
 
 
 # Both paths of each function: the CPU's (Python scalars) and every other device's (tensor
