@@ -21,7 +21,7 @@ from dipole_torch.dp.sampler import INITS, Chain, DPSampler
 from dipole_torch.dp.state import DPMixtureState
 from dipole_torch.gaussian import DTYPE
 from dipole_torch.pyro_model import canonical_state, dp_log_joint
-from dipole_torch.validation import check_choice, check_finite, check_matrix_shape
+from dipole_torch.validation import check_choice
 
 __all__ = ["DPMixtureKernel"]
 
@@ -97,12 +97,7 @@ class DPMixtureKernel(MCMCKernel):
     # ------------------------------------------------------------------ the MCMCKernel API
     def setup(self, warmup_steps: int, y: Tensor) -> None:
         """Start a chain on ``y: [N, D]`` (called by ``MCMC.run(y)``)."""
-        prior = self.sampler.prior
-        check_matrix_shape(y, (-1, prior.dim), "y")
-        check_finite(y, "y")
-        if y.shape[0] < 1:
-            raise ValueError("y must contain at least one point")
-        y = y.to(DTYPE)
+        y = self.sampler.checked_data(y)
         self._y = y
         if self._initial_labels is not None:
             if self._initial_labels.shape != (y.shape[0],):
@@ -110,7 +105,7 @@ class DPMixtureKernel(MCMCKernel):
                     f"initial labels must have shape [{y.shape[0]}], "
                     f"got {list(self._initial_labels.shape)}"
                 )
-            state = DPMixtureState.from_labels(y, self._initial_labels, prior)
+            state = DPMixtureState.from_labels(y, self._initial_labels, self.sampler.prior)
         else:
             state = self.sampler.start(y, self.init, self.generator)
         self._chain = self.sampler.to_chain(state)

@@ -201,6 +201,26 @@ def reward_prior(y):
     return NormalInverseWishartPrior.from_exploration(y.mean(0), torch.diag(y.var(0)), df=5.0)
 
 
+@pytest.mark.parametrize("low", [0.0, -0.5])
+def test_eq6_refuses_reward_weights_that_are_not_positive(low):
+    """Eq. 6 multiplies by r_c: y's last column must hold positive weights. A zero or negative
+    one ran, clamped to a tiny floor, silently weakening eq. 6 (the sampler and the Pyro
+    kernel); eq. 5 (``reward_weighted=False``) takes any last column."""
+    from dipole_torch import DPMixtureKernel
+
+    g = torch.Generator().manual_seed(0)
+    y = reward_task(g)
+    y[::2, -1] = low
+    prior = reward_prior(y)
+    message = r"y's last column must hold positive reward weights with reward_weighted=True"
+    with pytest.raises(ValueError, match=message):
+        DPSampler(prior, reward_weighted=True).fit(y, num_sweeps=1, generator=g)
+    kernel = DPMixtureKernel(DPSampler(prior, reward_weighted=True), generator=g)
+    with pytest.raises(ValueError, match=message):
+        kernel.setup(0, y)
+    DPSampler(prior).fit(y, num_sweeps=1, generator=g)
+
+
 def test_eq6_r_c_stays_within_the_data_reward_range(monkeypatch):
     # r_c of occupied and of auxiliary components is a GMR prediction; at a mean drawn from H
     # it extrapolates (here up to ~1.3 and down to < 0). It must stay in [min w, max w].

@@ -155,6 +155,24 @@ class DPSampler:
         except torch.linalg.LinAlgError as error:
             raise DPNumericalError(_failure_message(y, self.prior, error)) from error
 
+    def checked_data(self, y: Tensor) -> Tensor:
+        """``y: [N, D]`` (N ≥ 1, finite, D the prior's dimension) in float64, or a
+        ``ValueError`` naming what is wrong; with ``reward_weighted``, its last column must
+        hold positive reward weights (eq. 6 multiplies by them: a non-positive one was
+        clamped to a tiny floor, silently weakening eq. 6)."""
+        check_matrix_shape(y, (-1, self.prior.dim), "y")
+        check_finite(y, "y")
+        if y.shape[0] < 1:
+            raise ValueError("y must contain at least one point")
+        y = y.to(DTYPE)
+        if self.reward_weighted and not bool((y[:, -1] > 0).all()):
+            raise ValueError(
+                f"y's last column must hold positive reward weights with reward_weighted=True "
+                f"(eq. 6), got {float(y[:, -1].min()):g} at least: map the returns onto "
+                "positive weights first (dipole_torch.RewardScale)"
+            )
+        return y
+
     def fit(
         self,
         y: Tensor,
@@ -182,12 +200,8 @@ class DPSampler:
             init: ``"single"`` or ``"sequential"`` (see ``start``).
             settle: unchanged sweeps in a row that end the chain early (None: never).
         """
-        check_matrix_shape(y, (-1, self.prior.dim), "y")
-        check_finite(y, "y")
-        if y.shape[0] < 1:
-            raise ValueError("y must contain at least one point")
+        y = self.checked_data(y)
         check_count(num_sweeps, "num_sweeps")
-        y = y.to(DTYPE)
         if state is None:
             state = self.start(y, init, generator)
         else:
