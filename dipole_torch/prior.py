@@ -109,8 +109,9 @@ class NormalInverseWishartPrior:
         """H centred on an exploration distribution N(mean, covariance).
 
         μ0 = mean, Σ0 = covariance, and Ψ0 = (ν0 − D − 1)·covariance so that E[Σ] equals the
-        exploration covariance. ν0 defaults to D + 3, the least integer with a finite prior
-        variance, so the data quickly dominate the prior. The regularisation is
+        exploration covariance. ν0 defaults to D + 3 (Ψ0 = 2·covariance): a weak prior, so
+        the data quickly dominate it, whose mean E[Σ] is finite (that needs ν0 > D + 1; Σ's
+        variance needs ν0 > D + 3, and stays infinite). The regularisation is
         ``regularization · diag(covariance)``.
         """
         d = mean.shape[-1]
