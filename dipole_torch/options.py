@@ -49,6 +49,7 @@ class DipoleOptions:
     ``coverage_max_policies``  ``None``: ``max_policies``      ``None``
                                from ``coverage_from`` on too
     ``max_policies``           8 active policies at most       no limit
+                               (refining wakes on top)
     ``max_sampled``            4 policies sampled in an        no limit
                                iteration (the others wait)
     ``retire_std``             1e-3: stop sampling a           0 (never)
@@ -136,7 +137,9 @@ class DipoleOptions:
             ``coverage_from=None`` alone turns a task's covering off). On a task where no
             policy retires while it covers, the cap binds for good once reached, and the
             alternatives found later wait for a place (docs: Precision and coverage).
-        max_policies: active policies at most (None: no limit).
+        max_policies: active policies at most that a clustering or the hill-valley test
+            adds (None: no limit); a retired policy woken to refine (``refine``) comes on
+            top of them, as it adds no policy and no region.
         max_sampled: policies sampled in one iteration at most, the best ones (None: all).
         retire_std: retire a policy once its exploration std is below this times Σ_start's
             (0: no policy is ever retired).

@@ -130,7 +130,8 @@ def check_command_line(argv: list[str], root_keys: list[str]) -> None:
         key = override.key_or_group
         if override.is_add() or override.is_force_add() or override.is_delete():
             continue
-        if override.package is not None or key.split(".")[0] in root_keys:
+        # (a config group's key is a path: hydra/launcher=joblib)
+        if override.package is not None or re.split(r"[./]", key)[0] in root_keys:
             continue
         close = difflib.get_close_matches(key, root_keys, n=1, cutoff=0.6)
         hint = f"did you mean {close[0]}?" if close else "a misspelling?"
