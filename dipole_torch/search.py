@@ -149,32 +149,35 @@ class PolicySearch:
 
     @property
     def policy_means(self) -> Tensor:
-        """``[K, D]`` the policies' means (float64)."""
+        """``[K, D]`` the policies' means (float64). This and the properties below are the
+        optimizer's own tensors, as a module's parameters are, not copies: editing one in
+        place edits the run (``.clone()`` to keep or change one; ``result`` is a snapshot)."""
         return self.policy_set.means
 
     @property
     def policy_covariances(self) -> Tensor:
-        """``[K, D, D]`` the policies' exploration covariances (float64)."""
+        """``[K, D, D]`` the policies' exploration covariances (float64; not a copy)."""
         return self.policy_set.covariances
 
     @property
     def active(self) -> Tensor:
-        """``[K]`` which policies are still sampled."""
+        """``[K]`` which policies are still sampled (not a copy)."""
         return self.policy_set.active
 
     @property
     def thetas(self) -> Tensor:
-        """``[N, D]`` the kept samples."""
+        """``[N, D]`` the kept samples (float64; not a copy)."""
         return self.archive.thetas
 
     @property
     def rewards(self) -> Tensor:
-        """``[N]`` the kept samples' returns."""
+        """``[N]`` the kept samples' returns (float64; not a copy)."""
         return self.archive.rewards
 
     @property
     def owner(self) -> Tensor:
-        """``[N]`` the policy owning each kept sample (−1: a scout of no policy yet)."""
+        """``[N]`` the policy owning each kept sample (−1: a scout of no policy yet; not a
+        copy)."""
         return self.archive.owner
 
     @property
