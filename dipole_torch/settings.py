@@ -18,6 +18,10 @@ __all__ = ["SETTINGS_RTOL", "setting_differences"]
 SETTINGS_RTOL = 1e-6
 
 
+# Settings kept in another form than given: Σ_start is given as one std, stds or a covariance.
+LABELS = {"sigma_start": "sigma_start (as a covariance)"}
+
+
 def setting_differences(saved: dict, own: dict) -> list[str]:
     """``"name: <saved> saved, <own> here"`` for each setting of both whose values differ
     (tensors: in shape, or beyond ``SETTINGS_RTOL`` of their largest magnitude). A setting
@@ -45,6 +49,7 @@ def setting_differences(saved: dict, own: dict) -> list[str]:
         return repr(value)
 
     def difference(key: str, a, b) -> str:
+        key = LABELS.get(key, key)
         large = isinstance(a, Tensor) and isinstance(b, Tensor) and a.numel() > 4
         if not (large and a.shape == b.shape):
             return f"{key}: {shown(a)} saved, {shown(b)} here"

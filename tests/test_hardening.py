@@ -435,7 +435,8 @@ def test_a_refused_state_changes_nothing(kind):
         ("dipole", lambda: Dipole.paper(torch.zeros(2, dtype=F64), 1.0),
          r"importance: 'policy' saved, 'global' here"),
         ("dipole", lambda: Dipole(torch.zeros(2, dtype=F64), 2.0),
-         r"sigma_start: \[\[1.0, 0.0\], \[0.0, 1.0\]\] saved, \[\[4.0, 0.0\], \[0.0, 4.0\]\] here"),
+         r"sigma_start \(as a covariance\): \[\[1.0, 0.0\], \[0.0, 1.0\]\] saved, "
+         r"\[\[4.0, 0.0\], \[0.0, 4.0\]\] here"),
         ("dipole", lambda: Dipole(torch.tensor([0.0, 1.0], dtype=F64), 1.0),
          r"theta0: \[0.0, 0.0\] saved, \[0.0, 1.0\] here"),
         ("dipole", lambda: Dipole(torch.zeros(2, dtype=F64), 1.0, bounds=(-3, 3)),
@@ -447,7 +448,8 @@ def test_a_refused_state_changes_nothing(kind):
         # Too large to show whole (a tensor of shape [3, 3] saved, and one here, it said):
         # where the two differ most.
         ("dipole3", lambda: Dipole(torch.zeros(3, dtype=F64), [1.0, 1.0, 3.0]),
-         r"sigma_start: \[3, 3\] tensors that differ most at \[2, 2\]: 1 saved, 9 here"),
+         r"sigma_start \(as a covariance\): \[3, 3\] tensors that differ most at \[2, 2\]: "
+         r"1 saved, 9 here"),
         ("dipole3", lambda: Dipole(torch.zeros(3, dtype=F64), 1.0, bounds=(-3, 3)),
          r"bounds: None saved, a tensor of shape \[2, 3\] here"),
     ],
