@@ -1,5 +1,6 @@
 """Reproduce Figure 1 of Bruno, Calinon & Caldwell (AAAI 2013): DIPOLE vs PoWER on cart-pole
-and mountain car, 50 learning runs per curve, mean ± std of the reward against trials.
+and mountain car, 50 learning runs per curve, mean ± std of the reward against trials (the
+std of the runs, NumPy's default ddof=0, as in every table and figure of the project).
 
 For each task and algorithm, ``--runs`` independent learning runs (seeds 0..runs-1), split in
 ``--chunks`` jobs spread over ``--workers`` processes, advance in lockstep: every iteration,
