@@ -355,7 +355,8 @@ class Dipole(PolicySearch):
     @property
     def mixture(self) -> GaussianMixture:
         """The IGMM over [θ, r] of the last clustering, with the policies' current means,
-        r in return units.
+        r in return units, in float64 whatever ``theta0``'s dtype (the model's own numbers;
+        ``policies`` is in ``theta0``'s).
 
         ``mixture.condition(range(D), theta).mean`` predicts the return of ``theta``;
         ``mixture.condition([D], r)`` is the distribution of policies given a return level.
