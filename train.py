@@ -82,7 +82,7 @@ def train(cfg: DictConfig) -> dict:
             )
             raise CheckpointError(
                 f"{out} already holds a run's checkpoint.pt; continue it with "
-                f"resume={out / 'checkpoint.pt'}, {elsewhere}"
+                f"{resume.resume_override(out / 'checkpoint.pt')}, {elsewhere}"
             )
         run_directory.remove_stale_temporaries(out, OUTPUTS)  # left by a killed session
 

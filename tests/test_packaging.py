@@ -10,6 +10,7 @@ loaded and only the wheel provides ``dipole_torch``.
 
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -277,3 +278,27 @@ def test_the_resume_command_names_the_command_that_ran(monkeypatch):
     assert resume_command(["task=viapoint"], "/r/checkpoint.pt") == (
         "python train.py task=viapoint resume=/r/checkpoint.pt"
     )
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/m/viapoint_dipole_seed0_algo.optimizer.alpha=2/checkpoint.pt",  # a sweep's directory
+        "/m/runs [1,2]/a 'b' \"c\"/checkpoint.pt",
+    ],
+)
+def test_the_resume_command_quotes_a_path_that_hydra_would_parse(monkeypatch, path):
+    """A sweep run's directory holds "=" (``_algo.optimizer.alpha=2``): the printed command,
+    pasted, ended in Hydra's "mismatched input '=' expecting <EOF>". The shell's words of the
+    command are overrides that Hydra parses back to the path."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from dipole_torch.training.resume import resume_command
+
+    monkeypatch.setattr(sys, "argv", ["train.py", "task=viapoint"])
+    words = shlex.split(resume_command(["task=viapoint"], path))
+    parsed = OverridesParser.create().parse_overrides(words[2:])
+    assert [(o.key_or_group, o.value()) for o in parsed] == [
+        ("task", "viapoint"),
+        ("resume", path),
+    ]

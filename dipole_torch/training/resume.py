@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shlex
 import sys
 from collections.abc import Iterable, Mapping
@@ -346,7 +347,17 @@ def resume_command(overrides: list[str], checkpoint: str | Path) -> str:
         for o in overrides
         if o.split("=", 1)[0].lstrip("+~") not in ("resume", "hydra.run.dir", "hydra.output_subdir")
     ]
-    return shlex.join([*launcher, *keep, f"resume={checkpoint}"])
+    return shlex.join([*launcher, *keep, resume_override(checkpoint)])
+
+
+def resume_override(checkpoint: str | Path) -> str:
+    """``resume=<checkpoint>`` as Hydra parses it: a path with characters of the override
+    grammar (a sweep's directory ``..._seed0_algo.optimizer.alpha=2``) in double quotes,
+    where Hydra read ``=`` as the override's own."""
+    path = str(checkpoint)
+    if re.fullmatch(r"[\w./~:+@%-]*", path):
+        return f"resume={path}"
+    return 'resume="' + path.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 class Checkpointer:
