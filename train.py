@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -71,6 +72,9 @@ def train(cfg: DictConfig) -> dict:
     with checks.reported(), run_directory.lock_run_directory(out):
         checkpoint = resume.load_resume(cfg, overrides) if cfg.resume else None  # its seed
         if checkpoint is None and (out / "checkpoint.pt").exists():
+            refused = out / str(HydraConfig.get().output_subdir)  # .hydra/refused_<time>
+            if refused.name.startswith("refused_"):
+                shutil.rmtree(refused, ignore_errors=True)  # the finished run's record stays
             swept = HydraConfig.get().mode == RunMode.MULTIRUN
             elsewhere = (
                 "or give this sweep another hydra.sweep.dir, or a hydra.sweep.subdir that tells "

@@ -373,6 +373,13 @@ def test_a_sweep_whose_runs_share_a_directory_says_how_to_tell_them_apart(tmp_pa
     out = train("-m", "algo=power", "trials=20,30", f"hydra.sweep.dir={tmp_path}", check=False)
     assert out.returncode == 2
     assert "already holds a run's checkpoint.pt" in out.stderr
+    # The refused run's record did not replace the finished run's (Hydra writes it before the
+    # run starts: the 20-trial run's .hydra said trials=30, and aggregate.py believed it).
+    (record,) = tmp_path.glob("*/.hydra")
+    assert "trials=20" in (record / "overrides.yaml").read_text()
+    assert "trials: 20" in (record / "config.yaml").read_text()
+    names = sorted(path.name for path in record.iterdir())
+    assert names == ["config.yaml", "hydra.yaml", "overrides.yaml"]  # no refused_<time> left
     assert "hydra.sweep.subdir" in out.stderr and "hydra.run.dir" not in out.stderr
     # The subdir it gives for a sweep over the budget runs it.
     subdir = re.search(r"'(hydra\.sweep\.subdir=[^']*)'", out.stderr).group(1)

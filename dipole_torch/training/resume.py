@@ -111,14 +111,28 @@ MOVED_PREFIXES = {"tasks.": "dipole_torch.tasks."}
 def register_resolvers() -> None:
     """The resolvers ``configs/config.yaml`` uses: a resumed run's Hydra run directory is the
     checkpoint's (unless ``hydra.run.dir`` is given), and Hydra's own record goes to
-    ``.hydra/resume_<time>``, keeping the original run's ``.hydra/``; a sweep's run directory
-    is named by its settings (``setting_suffix``)."""
+    ``.hydra/resume_<time>``, keeping the original run's ``.hydra/`` (``record_subdir``); a
+    sweep's run directory is named by its settings (``setting_suffix``)."""
     register_resolver(
         "checkpoint_dir",
         lambda resume, fresh: fresh if not resume else str(_run_dir_of(Path(resume))),
     )
     register_resolver("if_resumed", lambda resume, resumed, fresh: resumed if resume else fresh)
+    register_resolver("record_subdir", record_subdir)
     register_resolver("setting_suffix", setting_suffix)
+
+
+def record_subdir(resume, output_dir: str, time: str) -> str:
+    """Where Hydra writes a run's record (its config and overrides) in the run directory:
+    ``.hydra`` for a new run; ``.hydra/resume_<time>`` for a resumed one, keeping the
+    original's; ``.hydra/refused_<time>`` for a new run into a directory that holds a run's
+    checkpoint, which train.py refuses and then removes that record (Hydra writes it before
+    the run starts: written to ``.hydra``, it relabelled the finished run)."""
+    if resume:
+        return f".hydra/resume_{time}"
+    if (Path(output_dir) / "checkpoint.pt").exists():
+        return f".hydra/refused_{time}"
+    return ".hydra"
 
 
 # Overrides that do not name a sweep's run directory: those in its name already (task, algo,
