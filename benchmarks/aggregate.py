@@ -226,14 +226,19 @@ def load_run(directory: Path) -> Run | None:
                 f"{results_path} says {key}={results.get(key)!r} but {config_path} says "
                 f"{expected!r}: the directory mixes two runs"
             )
-    _check_finished(results_path, results, history, config_path, config["trials"])
+    # The run's budget: results.json's, which a resume to a larger budget raised (its config
+    # keeps the first session's trials: the run was grouped and cut at that budget).
+    budget = results.get("trial_budget", config["trials"])
+    _check_finished(results_path, results, history, config_path, budget)
     settings = {
         key: value
         for key, value in flatten(config).items()
         if not any(key == skip or key.startswith(f"{skip}.") for skip in IGNORED)
     }
+    if "trials" in settings:
+        settings["trials"] = budget
     scalars = _policy_scalars(results_path, results)
-    return Run(directory, task, algo, config["seed"], config["trials"], settings, history, scalars)
+    return Run(directory, task, algo, config["seed"], budget, settings, history, scalars)
 
 
 def load_runs(roots: list[Path], allow_incomplete: bool) -> tuple[list[Run], list[Path]]:

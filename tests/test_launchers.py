@@ -201,6 +201,36 @@ def test_aggregate_splits_a_hyperparameter_sweep_into_curves(tmp_path):
         assert curve["best"]["std"] == pytest.approx([np.std([0, 1, 2])] * 3, abs=1e-4)
 
 
+def test_an_extended_run_counts_with_its_final_budget(tmp_path):
+    """A run resumed to a larger budget keeps its first session's trials in .hydra/: grouped
+    by them, it made a curve of its own, cut at the first budget, beside the runs started
+    with the larger one."""
+    fake_run(tmp_path / "sweep" / "seed0", 0)
+    fake_run(tmp_path / "sweep" / "seed1", 1)
+    extended = tmp_path / "sweep" / "seed0" / "results.json"  # resumed from 20 to 30 trials
+    results = json.loads(extended.read_text())
+    for key, values in results["history"].items():
+        results["history"][key] = values + [values[-1] + (10 if key == "trials" else 0)]
+    results["trial_budget"] = results["trials"] = 30
+    extended.write_text(json.dumps(results))
+    for seed in (2, 3):  # started with the larger budget
+        run = tmp_path / "sweep" / f"seed{seed}"
+        fake_run(run, seed)
+        config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump({**config, "trials": 30}))
+        results = json.loads((run / "results.json").read_text())
+        for key, values in results["history"].items():
+            results["history"][key] = values + [values[-1] + (10 if key == "trials" else 0)]
+        results["trial_budget"] = results["trials"] = 30
+        (run / "results.json").write_text(json.dumps(results))
+    summary = aggregate.aggregate([tmp_path / "sweep"], tmp_path / "out", 5, False)
+    curves = summary["tasks"]["multimodal"]["curves"]
+    assert {label: curve["seeds"] for label, curve in curves.items()} == {
+        "PoWER (trials=20)": [1],
+        "PoWER (trials=30)": [0, 2, 3],
+    }
+
+
 def test_aggregate_gives_the_final_policy_sets_figures_over_the_runs(tmp_path, capsys):
     """results.json's ``policy_set`` scalars (the viapoint task's routes) at each run's end:
     mean and std over the runs that report them."""
