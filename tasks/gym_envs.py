@@ -19,8 +19,10 @@ threshold. Keyword arguments of ``gymnasium.make`` go to the task's constructor 
 The registered ``max_episode_steps`` (gymnasium's ``TimeLimit``) is the task's horizon, the
 paper's, and ``reward_threshold`` the mean return that counts as solved (each class says how it
 was chosen); both are for the default task. An environment made with ``steps=N`` ends its
-episodes after ``N`` steps by itself; pass ``max_episode_steps=N`` to ``gymnasium.make`` as well
-for ``spec.max_episode_steps`` to say so.
+episodes after ``N`` steps by itself, but gymnasium's ``TimeLimit`` still cuts them at the
+registered horizon: for ``N`` beyond it, pass ``max_episode_steps=N`` to ``gymnasium.make`` as
+well (``steps=200`` alone cut mountain car's episodes at 100, before its end's penalty: a
+policy that never reaches the goal returned 101).
 
 Rendering: ``render_mode="rgb_array"`` returns each frame as an RGB ``uint8`` array
 ``[400, 600, 3]``, drawn with numpy (``dipole_torch.tasks.rendering``, no extra

@@ -60,6 +60,22 @@ def test_specs_carry_the_horizon_and_the_solved_threshold(env_id, horizon, thres
     assert env.unwrapped.task.reward_range[1] > threshold
 
 
+def test_a_longer_horizon_needs_max_episode_steps_as_the_docs_say():
+    """gymnasium's TimeLimit cuts at the registered horizon whatever ``steps`` says: with
+    ``steps=200`` alone, a mountain car that never reaches the goal returned 101 (the episode
+    cut at 100, before its end's penalty); with ``max_episode_steps=200`` too, its 0."""
+    returns = {}
+    for extra in ({}, {"max_episode_steps": 200}):
+        env = gym.make("dipole/MountainCar-v0", steps=200, **extra)
+        env.reset(seed=0)
+        total, steps, ended = 0.0, 0, False
+        while not ended:
+            _, reward, terminated, truncated, _ = env.step(0)  # full throttle backward
+            total, steps, ended = total + reward, steps + 1, terminated or truncated
+        returns[bool(extra)] = (steps, total)
+    assert returns == {False: (100, 101.0), True: (200, 0.0)}
+
+
 def _gym_return(env, task, theta, initial_state, to_action):
     obs, _ = env.reset(seed=0, options={"initial_state": initial_state})
     total, done = 0.0, False
