@@ -371,23 +371,24 @@ class ViapointTask(EpisodicTask):
         if start is not None:
             named_points.insert(0, ("start", _point(start, "start", factory)))
         self._check_within_reach(named_points)
+        # The start posture, or with a start point the IK's first guess: a posture all the same.
+        outside = [
+            f"{name} = {format_value(q)} (limits [{format_value(low)}, {format_value(high)}])"
+            for name, q, low, high in zip(
+                self.kinematics.joint_names,
+                guess.tolist(),
+                self.kinematics.joint_lower.tolist(),
+                self.kinematics.joint_upper.tolist(),
+                strict=True,
+            )
+            if not low <= q <= high
+        ]
+        if outside:
+            raise ValueError(
+                f"initial_joints lie outside the joint limits (rad, or m for prismatic "
+                f"joints) at {', '.join(outside)}"
+            )
         if start is None:
-            outside = [
-                f"{name} = {format_value(q)} (limits [{format_value(low)}, {format_value(high)}])"
-                for name, q, low, high in zip(
-                    self.kinematics.joint_names,
-                    guess.tolist(),
-                    self.kinematics.joint_lower.tolist(),
-                    self.kinematics.joint_upper.tolist(),
-                    strict=True,
-                )
-                if not low <= q <= high
-            ]
-            if outside:
-                raise ValueError(
-                    f"initial_joints lie outside the joint limits (rad, or m for prismatic "
-                    f"joints) at {', '.join(outside)}"
-                )
             self.q_start = guess
             self.start = self.kinematics.forward_kinematics(guess[None])[0].detach()
         else:

@@ -315,6 +315,10 @@ def test_input_errors_name_the_argument_and_the_joint():
         r"\(limits \[-0\.9, 3\.1\]\)$",
     ):
         ViapointTask(start=None, initial_joints=[0.0, 0.6, 0.0, 3.5, 0.0, 0.0, 0.0])
+    # With a start point, initial_joints is the start IK's first guess: a posture all the same
+    # (one beyond the limits was taken without a word).
+    with pytest.raises(ValueError, match=r"initial_joints lie outside .* at wam_j4 = 3\.5 "):
+        ViapointTask(initial_joints=[0.0, 0.6, 0.0, 3.5, 0.0, 0.0, 0.0])
     lower = [-2.6, -2.0, -2.8, 3.2, -4.76, -1.6, -3.0]
     with pytest.raises(
         ValueError, match=r"lower exceeds upper for joint\(s\) wam_j4 \[3\.2, 3\.1\] of wam7"
