@@ -125,9 +125,11 @@ def train(cfg: DictConfig) -> dict:
         block = cfg.task.get("block")  # viapoint_blocked: the world changes mid-run
         start = time.perf_counter()
 
-        def save_checkpoint() -> None:
+        def save_checkpoint(run_trials: int | None = None) -> None:
             wall = elapsed + time.perf_counter() - start
-            checkpointer.save(optimizer, task_generator, history, blocked, wall, figure_trials)
+            checkpointer.save(
+                optimizer, task_generator, history, blocked, wall, figure_trials, run_trials
+            )
 
         # The ask/tell loop: one iteration a batch.
         progress = console.Progress(cfg.trials, optimizer.trials, enabled=cfg.progress)
@@ -151,8 +153,8 @@ def train(cfg: DictConfig) -> dict:
                     rows = block.trial - optimizer.trials  # the block comes at its trial exactly
                 elif optimizer.trials + rows > cfg.trials:
                     # The batch crossing the budget: its first rows end the run at the budget
-                    # exactly. The checkpoint keeps the run before it.
-                    save_checkpoint()
+                    # exactly. The checkpoint keeps the run before it, and where it ends.
+                    save_checkpoint(run_trials=cfg.trials)
                     log.info(
                         f"the last batch is cut to its first {cfg.trials - optimizer.trials} "
                         f"of {rows} rows, to end at {cfg.trials} trials"
@@ -214,8 +216,6 @@ def train(cfg: DictConfig) -> dict:
             if history
             else {},
         }
-        if last_batch_cut:  # the checkpoint holds the run before that batch: say where it ended
-            checkpointer.record_end(optimizer.trials)
         write_results(out, results, optimizer)
         policy_set = results.get("policy_set", {})
         writer.hparams(cfg, best_reward, len(results["policies"]), policy_set.get("scalars"))

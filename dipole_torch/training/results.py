@@ -56,9 +56,8 @@ def policy_summary(task, optimizer, generator: torch.Generator | None = None) ->
     rollouts = mean_evaluations(optimizer)
     episodes = generator if rollouts > 1 else None
     with torch.no_grad():
-        returns = torch.stack([task_returns(task, means, episodes) for _ in range(rollouts)]).mean(
-            0
-        )
+        each = [task_returns(task, means, episodes) for _ in range(rollouts)]
+        returns = torch.stack(each).mean(0)
     weights = optimizer.policies.weights
     descriptions = task.describe_policies(means)
     ids = optimizer.policy_set.ids.tolist()

@@ -117,7 +117,6 @@ def register_resolvers() -> None:
         "checkpoint_dir",
         lambda resume, fresh: fresh if not resume else str(_run_dir_of(Path(resume))),
     )
-    register_resolver("if_resumed", lambda resume, resumed, fresh: resumed if resume else fresh)
     register_resolver("record_subdir", record_subdir)
     register_resolver("setting_suffix", setting_suffix)
 
@@ -397,9 +396,14 @@ class Checkpointer:
         block: dict | None,
         wall_time_s: float,
         figure_trials: int | None = None,
+        run_trials: int | None = None,
     ) -> None:
         """``figure_trials``: the trial count of the run's latest policy figure (a resumed
-        run at that count does not draw it again)."""
+        run at that count does not draw it again). ``run_trials``: for the checkpoint written
+        before the last batch, cut at the budget, the trials the run ends at: a resume asking
+        for fewer would write a shorter run's results over the finished one's, and is
+        refused (``restore``)."""
+        ended = {} if run_trials is None else {"run_trials": int(run_trials)}
         atomic_save(
             {
                 "optimizer": optimizer.state_dict(),
@@ -411,14 +415,8 @@ class Checkpointer:
                 "block": block,
                 "figure_trials": figure_trials,
                 **self.shape,
+                **ended,
             },
             self.path,
         )
         self.trials = optimizer.trials
-
-    def record_end(self, trials: int) -> None:
-        """Add to the checkpoint, written before the last batch was cut at the budget, the
-        trials its run ended at (``run_trials``): a resume asking for fewer would write a
-        shorter run's results over the finished one's, and is refused (``restore``)."""
-        saved = load_checkpoint(self.path, required=CHECKPOINT_KEYS, kind="train.py checkpoint")
-        atomic_save({**saved, "run_trials": int(trials)}, self.path)
